@@ -185,12 +185,15 @@ class CameraOptics:
 
     def blur_px(self, u: ArrayLike) -> FloatOrArray:
         """Geometric defocus blur diameter at object distance ``u`` (px)."""
-        return _as(np.asarray(blur_diameter(u, self.F, self.f, self.D, self.b, self.L)) / self.delta)
+        return _as(
+            np.asarray(blur_diameter(u, self.F, self.f, self.D, self.b, self.L)) / self.delta
+        )
 
 
 def paper_optics() -> CameraOptics:
     """The seed paper's Zemax camera: F=35, f=2.5, D=0.25, delta=0.0025, b=3, focus at u=300."""
     F, f, D, delta, b = 35.0, 2.5, 0.25, 0.0025, 3.0
     L = mla_distance_for_focus(300.0, F, f, b)
-    return CameraOptics(F=F, f=f, D=D, delta=delta, b=b, L=L,
-                        aperture=main_aperture_for_matching(L, b, D))
+    return CameraOptics(
+        F=F, f=f, D=D, delta=delta, b=b, L=L, aperture=main_aperture_for_matching(L, b, D)
+    )

@@ -1,0 +1,92 @@
+"""The double-checkerboard calibration board (``shared/OPTICS.md`` §3).
+
+Board coordinates ``(X, Y)`` are in mm, seen from the camera, X parallel to the
+sensor's x axis. Square ``(c, r)`` covers ``c·s <= X < (c+1)·s``,
+``r·s <= Y < (r+1)·s`` and is dark when ``c + r`` is even. Columns ``c >= 1``
+form the reference checkerboard: their dark squares are shrunk by ``Cr/2`` on
+all four sides. Outside ``|X|, |Y| <= half_extent`` the board is light.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class Board:
+    """Board geometry and reflectances (mm; reflectances in [0, 1])."""
+
+    square_mm: float = 10.0
+    reference_gap_mm: float = 0.1
+    dark: float = 0.05
+    light: float = 0.95
+    half_extent_mm: float = 150.0
+
+    def __post_init__(self) -> None:
+        if not self.square_mm > 0:
+            raise ValueError(f"board square size must be positive, got {self.square_mm} mm")
+        if not 0 <= self.reference_gap_mm < self.square_mm:
+            raise ValueError(
+                f"reference gap Cr = {self.reference_gap_mm} mm must be in [0, square size)"
+            )
+        if not 0 <= self.dark < self.light <= 1:
+            raise ValueError("board reflectances need 0 <= dark < light <= 1")
+
+    @property
+    def standard_corner_mm(self) -> tuple[float, float]:
+        """The standard corner (0, 0): four squares meet at a point."""
+        return (0.0, 0.0)
+
+    @property
+    def reference_corner_mm(self) -> tuple[float, float]:
+        """The reference corner (2s, 0): the dark squares are separated by a gap Cr."""
+        return (2.0 * self.square_mm, 0.0)
+
+    def distance_to_edge_mm(
+        self, X: NDArray[np.floating], Y: NDArray[np.floating]
+    ) -> NDArray[np.floating]:
+        """A lower bound on the distance from (X, Y) to the nearest reflectance edge (mm)."""
+        s = self.square_mm
+        g = 0.5 * self.reference_gap_mm
+        dx = np.abs(X - s * np.round(X / s))
+        dy = np.abs(Y - s * np.round(Y / s))
+        return np.minimum(dx, dy) - g
+
+    def box_reflectance(
+        self, X: NDArray[np.floating], Y: NDArray[np.floating], half_width_mm: float
+    ) -> NDArray[np.floating]:
+        """Mean reflectance over the axis-aligned square ``[X±h] × [Y±h]`` (exact, analytic).
+
+        ``half_width_mm`` (h) must be below ``(s - Cr)/2``, so that a footprint
+        touches at most two columns and two rows of squares.
+        """
+        s = self.square_mm
+        g = 0.5 * self.reference_gap_mm
+        h = float(half_width_mm)
+        if not 0 < h < 0.5 * (s - 2 * g):
+            raise ValueError(f"footprint half width {h} mm is out of range for squares of {s} mm")
+        n_half = int(round(self.half_extent_mm / s))
+        kx = np.round(X / s)
+        ky = np.round(Y / s)
+        x_lo, x_hi = X - h, X + h
+        y_lo, y_hi = Y - h, Y + h
+        inv_area = 1.0 / (4.0 * h * h)
+        dark_cover = np.zeros(np.broadcast_shapes(np.shape(X), np.shape(Y)), dtype=X.dtype)
+        for dc in (-1.0, 0.0):
+            c = kx + dc
+            shrink = np.where(c >= 1, g, 0.0).astype(X.dtype)
+            cx_lo = c * s + shrink
+            cx_hi = (c + 1) * s - shrink
+            over_x = np.clip(np.minimum(x_hi, cx_hi) - np.maximum(x_lo, cx_lo), 0.0, None)
+            over_x = np.where((c >= -n_half) & (c < n_half), over_x, 0.0)
+            for dr in (-1.0, 0.0):
+                r = ky + dr
+                ry_lo = r * s + shrink
+                ry_hi = (r + 1) * s - shrink
+                over_y = np.clip(np.minimum(y_hi, ry_hi) - np.maximum(y_lo, ry_lo), 0.0, None)
+                dark = (((c + r) % 2) == 0) & (r >= -n_half) & (r < n_half)
+                dark_cover += np.where(dark, over_x * over_y, 0.0)
+        return (self.light - (self.light - self.dark) * dark_cover * inv_area).astype(X.dtype)
