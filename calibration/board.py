@@ -13,6 +13,38 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtr
+
+_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
+
+
+def _g(z: NDArray[np.floating]) -> NDArray[np.floating]:
+    """``G(z) = z Φ(z) + φ(z)``, the antiderivative of the normal CDF."""
+    return z * ndtr(z) + np.exp(-0.5 * z * z) * _INV_SQRT_2PI
+
+
+def _interval_cover(
+    lo_f: NDArray[np.floating],
+    hi_f: NDArray[np.floating],
+    lo: NDArray[np.floating],
+    hi: NDArray[np.floating],
+    sigma: float,
+) -> NDArray[np.floating]:
+    """Length-weighted cover of ``[lo, hi]`` over the footprint ``[lo_f, hi_f]`` (mm).
+
+    With ``sigma > 0`` the indicator of ``[lo, hi]`` is first blurred by a
+    Gaussian of standard deviation ``sigma`` (mm): the integral over the
+    footprint of ``Φ((t-lo)/σ) - Φ((t-hi)/σ)``.
+    """
+    if sigma <= 0:
+        return np.clip(np.minimum(hi_f, hi) - np.maximum(lo_f, lo), 0.0, None)
+    inv = 1.0 / sigma
+    # float32 halves the cost of the normal CDF; the differences are formed in float64
+    z = [
+        ((a - b) * inv).astype(np.float32)
+        for a, b in ((hi_f, lo), (lo_f, lo), (hi_f, hi), (lo_f, hi))
+    ]
+    return sigma * (_g(z[0]) - _g(z[1]) - _g(z[2]) + _g(z[3])).astype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -56,17 +88,23 @@ class Board:
         return np.minimum(dx, dy) - g
 
     def box_reflectance(
-        self, X: NDArray[np.floating], Y: NDArray[np.floating], half_width_mm: float
+        self,
+        X: NDArray[np.floating],
+        Y: NDArray[np.floating],
+        half_width_mm: float,
+        blur_sigma_mm: float = 0.0,
     ) -> NDArray[np.floating]:
         """Mean reflectance over the axis-aligned square ``[X±h] × [Y±h]`` (exact, analytic).
 
-        ``half_width_mm`` (h) must be below ``(s - Cr)/2``, so that a footprint
-        touches at most two columns and two rows of squares.
+        With ``blur_sigma_mm`` > 0 the board is first blurred by an isotropic
+        Gaussian (a PSF mapped onto the board). ``h`` plus 5σ must stay below
+        ``(s - Cr)/2``, so that a footprint touches at most two columns and two
+        rows of squares.
         """
         s = self.square_mm
         g = 0.5 * self.reference_gap_mm
         h = float(half_width_mm)
-        if not 0 < h < 0.5 * (s - 2 * g):
+        if not 0 < h + 5 * blur_sigma_mm < 0.5 * (s - 2 * g):
             raise ValueError(f"footprint half width {h} mm is out of range for squares of {s} mm")
         n_half = int(round(self.half_extent_mm / s))
         kx = np.round(X / s)
@@ -80,13 +118,13 @@ class Board:
             shrink = np.where(c >= 1, g, 0.0).astype(X.dtype)
             cx_lo = c * s + shrink
             cx_hi = (c + 1) * s - shrink
-            over_x = np.clip(np.minimum(x_hi, cx_hi) - np.maximum(x_lo, cx_lo), 0.0, None)
+            over_x = _interval_cover(x_lo, x_hi, cx_lo, cx_hi, blur_sigma_mm)
             over_x = np.where((c >= -n_half) & (c < n_half), over_x, 0.0)
             for dr in (-1.0, 0.0):
                 r = ky + dr
                 ry_lo = r * s + shrink
                 ry_hi = (r + 1) * s - shrink
-                over_y = np.clip(np.minimum(y_hi, ry_hi) - np.maximum(y_lo, ry_lo), 0.0, None)
+                over_y = _interval_cover(y_lo, y_hi, ry_lo, ry_hi, blur_sigma_mm)
                 dark = (((c + r) % 2) == 0) & (r >= -n_half) & (r < n_half)
                 dark_cover += np.where(dark, over_x * over_y, 0.0)
         return (self.light - (self.light - self.dark) * dark_cover * inv_area).astype(X.dtype)

@@ -7,10 +7,14 @@ microlens' (square, pitch-sized) aperture are refracted by the microlens
 soft micro-image rims), refracted by the main lens (thin lens, ``F``) and
 intersected with the board plane at object distance ``u``. For each ray the
 board reflectance is integrated analytically over the pixel's footprint on the
-board (exact area sampling of the pixel), each ray is weighted by ``cos⁴`` of
-its incidence angle on the sensor, then the irradiance is blurred by a Gaussian
-PSF standing in for diffraction and turned into counts with Poisson shot
-noise, Gaussian read noise, a black level and bit-depth quantization.
+board (exact area sampling of the pixel) after blurring the board with the
+PSF (a Gaussian standing in for diffraction, ``psf_sigma_px`` on the sensor,
+mapped onto the board through the micro-image magnification: exact for the
+board content of a micro-image, where the sensor-to-board map is affine; the
+rims keep their geometric softness), each ray is weighted by ``cos⁴`` of its
+incidence angle on the sensor, and the irradiance is turned into counts with
+Poisson shot noise, Gaussian read noise, a black level and bit-depth
+quantization.
 
 Speed: for a given frame the board point of every ray is affine in the
 aperture sample ``q`` with one scalar slope (``λ``, zero at the focus plane),
@@ -28,7 +32,6 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -97,7 +100,7 @@ class SimCamera:
     mla_rotation_deg: float = 0.0
     mla_offset_px: tuple[float, float] = (0.0, 0.0)
     psf_sigma_px: float = 0.4
-    aperture_samples: int = 6
+    aperture_samples: int = 4
 
     def __post_init__(self) -> None:
         lens_px = self.optics.lens_pitch_px
@@ -152,7 +155,9 @@ class _FrameGeometry:
         self.a_s = o.a_f  # distance of the plane conjugate to the sensor, in front of the MLA
         self.kappa = 1.0 - o.L / self.a_s
         self.lam = self.kappa * (1.0 - self.u / o.F) - self.u * (1.0 - self.kappa) / o.L
-        self.footprint_half_mm = 0.5 * o.delta * abs(-(o.L + self.u - self.u * o.L / o.F) / o.b)
+        board_mm_per_px = o.delta * abs((o.L + self.u - self.u * o.L / o.F) / o.b)
+        self.footprint_half_mm = 0.5 * board_mm_per_px
+        self.psf_board_mm = cam.psf_sigma_px * board_mm_per_px
         n = cam.aperture_samples
         t = (np.arange(n) + 0.5) / n - 0.5
         qa, qb = np.meshgrid(t * o.D, t * o.D, indexing="xy")
@@ -207,7 +212,7 @@ def _irradiance_rows(
         X0 = bx * gain - geo.u * (mx - bx) / o.L - board_offset_mm[0]
         Y0 = by * gain - geo.u * (my - by) / o.L - board_offset_mm[1]
         h = geo.footprint_half_mm
-        reach = abs(geo.lam) * geo.q_radius + h + 1e-6
+        reach = abs(geo.lam) * geo.q_radius + h + 5.0 * geo.psf_board_mm + 1e-6
         near_edge = cam.board.distance_to_edge_mm(X0, Y0) < reach
         need = ~outside & (rim | near_edge)
         simple = ~outside & ~need
@@ -243,7 +248,7 @@ def _irradiance_rows(
             else:
                 acc[flat] += w[flat] * flat_refl[flat]
                 acc[edge_rays] += w[edge_rays] * cam.board.box_reflectance(
-                    nX + geo.lam * qx, nY + geo.lam * qy, geo.footprint_half_mm
+                    nX + geo.lam * qx, nY + geo.lam * qy, geo.footprint_half_mm, geo.psf_board_mm
                 )
         value[need] = acc / geo.qx.size
     return value.astype(np.float32)
@@ -325,8 +330,7 @@ def render_frame(
 ) -> NDArray[np.uint16]:
     """One raw frame in sensor counts (uint16, right-aligned ``bit_depth`` bits).
 
-    The PSF is applied on a window padded by 4σ so that an ROI equals the same
-    window cut out of a full frame (up to noise). ``seed`` makes noise reproducible.
+    ``seed`` makes the noise reproducible; an ROI renders only that window.
     """
     full = Roi(0, 0, cam.sensor.width, cam.sensor.height)
     roi = roi or full
@@ -339,23 +343,13 @@ def render_frame(
         or roi.y + roi.height > full.height
     ):
         raise ValueError(f"ROI {roi} lies outside the {full.width}x{full.height} sensor")
-    pad = int(math.ceil(4 * cam.psf_sigma_px)) if cam.psf_sigma_px > 0 else 0
-    x0, y0 = max(0, roi.x - pad), max(0, roi.y - pad)
-    x1 = min(full.width, roi.x + roi.width + pad)
-    y1 = min(full.height, roi.y + roi.height + pad)
-    padded = Roi(x0, y0, x1 - x0, y1 - y0)
     irr = render_irradiance(
         cam,
         object_distance_mm=object_distance_mm,
         white=white,
         board_offset_mm=board_offset_mm,
-        roi=padded,
+        roi=roi,
         threads=threads,
-    )
-    if pad:
-        irr = cv2.GaussianBlur(irr, (0, 0), cam.psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
-    irr = np.ascontiguousarray(
-        irr[roi.y - y0 : roi.y - y0 + roi.height, roi.x - x0 : roi.x - x0 + roi.width]
     )
     if not noise:
         counts = irr * np.float32(

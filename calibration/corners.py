@@ -1,0 +1,423 @@
+"""ESIF corner detection in the micro-images of a raw frame (the paper's Algorithm 1, Eq. 6).
+
+For every micro-image that shows a board corner:
+
+1. **candidate**: the strongest saddle (most negative Hessian determinant of the
+   Gaussian-smoothed frame) inside the micro-image's interior disc;
+2. **median filter + Hough**: a 3×3 median filter, Canny and probabilistic Hough
+   lines find the half-edges leaving the corner (ideally four: up, down, left,
+   right). Their intersection refines the start point. Fewer than four lines
+   does *not* reject the micro-image (the paper's "exactly 4 lines" rule loses
+   good micro-images in noise and vignetting): the count is recorded and the
+   edge fits below decide;
+3. **edge blocks**: rows above (A) and below (D) the corner sample the vertical
+   edge, columns left (B) and right (C) the horizontal edge; each row/column
+   profile is fitted with the blurred-step model of :mod:`calibration.edge_fit`
+   (on the raw counts, so the filter cannot bias the sub-pixel positions);
+4. **corner**: ``x = (x̄_A + x̄_D)/2``, ``y = (ȳ_B + ȳ_C)/2`` (Eq. 6 with equal
+   weight per side; a common slope per edge absorbs a small board tilt). Equal
+   side weights keep the reference corner unbiased: its edges jog by ``±Cr/2``
+   on the two sides of the corner.
+
+The **corner pixel size** is the width of the region around the corner in which
+the edge fits do not resolve the edge, measured as an equivalent width: along
+each edge, the sum over one profile per pixel of the missing fraction of edge
+contrast (``1 - C/C_far``), averaged over the two edges. It grows with blur, and
+for the reference corner it adds about the gap ``Cr`` (in pixels) minus a
+blur-dependent part, which is why Eq. 7's ``Lp`` is only approximate.
+Coordinates are sensor pixels, pixel centres at integers, arrays ``[y, x]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .edge_fit import fit_edges
+from .lens_grid import LensGrid
+
+
+@dataclass(frozen=True)
+class CornerOptions:
+    """Tunables of the corner detector (pixels unless stated)."""
+
+    saddle_sigma_px: float = 2.0
+    interior_fraction: float = 0.72
+    profile_half_px: int = 6
+    min_points_per_block: int = 4
+    resolved_contrast: float = 0.9
+    size_window_px: float = 5.0
+    hough_threshold: int = 8
+    max_block_offset_px: float = 3.0
+
+
+@dataclass
+class CornerMeasurement:
+    """One micro-image's corner (sensor pixels) and its diagnostics."""
+
+    lens_i: int
+    lens_j: int
+    x: float = float("nan")
+    y: float = float("nan")
+    x_se: float = float("nan")
+    y_se: float = float("nan")
+    size_x_px: float = float("nan")
+    size_y_px: float = float("nan")
+    edge_width_px: float = float("nan")
+    residual_rms: float = float("nan")
+    points: dict[str, int] = field(default_factory=dict)
+    hough_lines: int = 0
+    ok: bool = False
+    reason: str = ""
+
+    @property
+    def size_px(self) -> float:
+        """Corner pixel size: mean of the sizes along the two edges."""
+        return 0.5 * (self.size_x_px + self.size_y_px)
+
+    def to_dict(self) -> dict[str, object]:
+        d = {k: v for k, v in self.__dict__.items()}
+        d["size_px"] = self.size_px
+        return d
+
+
+@dataclass(frozen=True)
+class Junctions:
+    """Saddle candidates: one per micro-image (lattice index, position, strength)."""
+
+    i: NDArray[np.int64]
+    j: NDArray[np.int64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    strength: NDArray[np.float64]
+
+
+class MicroImageMap:
+    """Pixel -> micro-image bookkeeping for one lattice and frame size (computed once)."""
+
+    def __init__(
+        self, image_grid: LensGrid, shape: tuple[int, int], interior_radius_px: float
+    ) -> None:
+        h, w = shape
+        self.grid = image_grid
+        self.shape = shape
+        self.interior_radius_px = interior_radius_px
+        ys, xs = np.mgrid[0:h, 0:w]
+        fi, fj = image_grid.fractional_index(xs, ys)
+        ii, jj = np.rint(fi), np.rint(fj)
+        r = np.hypot(fi - ii, fj - jj) * image_grid.pitch_px
+        self.i_min, self.j_min = int(ii.min()), int(jj.min())
+        self.n_j = int(jj.max()) - self.j_min + 1
+        label = ((ii - self.i_min) * self.n_j + (jj - self.j_min)).astype(np.int32)
+        label[r > interior_radius_px] = -1
+        self.label = label
+        self.n_labels = int(label.max()) + 1
+
+    def index_of(self, label: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        return label // self.n_j + self.i_min, label % self.n_j + self.j_min
+
+
+def find_junctions(
+    frame: NDArray[np.floating] | NDArray[np.integer],
+    mim: MicroImageMap,
+    *,
+    sigma_px: float = 2.0,
+    relative_threshold: float = 0.12,
+) -> Junctions:
+    """The strongest saddle point of every micro-image interior that holds a corner.
+
+    Strength is ``-det(Hessian)`` of the frame smoothed with ``sigma_px``; a
+    micro-image is kept when its strength exceeds ``relative_threshold`` times
+    a robust maximum over the frame.
+    """
+    img = np.asarray(frame, dtype=np.float32)
+    g = cv2.GaussianBlur(img, (0, 0), sigma_px)
+    ixx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3)
+    iyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3)
+    ixy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3)
+    strength = ixy * ixy - ixx * iyy
+    lab = mim.label.ravel()
+    inside = lab >= 0
+    s_flat = strength.ravel()
+    best = np.full(mim.n_labels, -np.inf, dtype=np.float32)
+    np.maximum.at(best, lab[inside], s_flat[inside])
+    top = np.sort(best[np.isfinite(best)])
+    if top.size == 0:
+        return Junctions(*(np.empty(0, dtype=t) for t in (np.int64, np.int64, float, float, float)))
+    robust_max = top[-min(10, top.size)]
+    keep_labels = np.flatnonzero(best > relative_threshold * max(robust_max, 1e-12))
+    # position of the maximum within each kept label
+    pix = np.flatnonzero(inside)
+    lab_in = lab[pix]
+    is_best = s_flat[pix] == best[lab_in]
+    sel = np.isin(lab_in, keep_labels) & is_best
+    pix_sel, lab_sel = pix[sel], lab_in[sel]
+    _, first = np.unique(lab_sel, return_index=True)
+    pix_sel, lab_sel = pix_sel[first], lab_sel[first]
+    ys, xs = np.divmod(pix_sel, mim.shape[1])
+    i, j = mim.index_of(lab_sel.astype(np.int64))
+    return Junctions(i, j, xs.astype(float), ys.astype(float), best[lab_sel].astype(float))
+
+
+def _hough_refine(patch: NDArray[np.float32], opts: CornerOptions) -> tuple[int, float, float]:
+    """Count the half-edges found by Hough around the patch centre; refine the centre.
+
+    Returns ``(number of half-edges found (0..4), dx, dy)`` where ``(dx, dy)``
+    moves the start point to the intersection of the best vertical and
+    horizontal lines (0 when not found).
+    """
+    lo, hi = np.percentile(patch, [2, 98])
+    if hi - lo <= 0:
+        return 0, 0.0, 0.0
+    img8 = np.clip((patch - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    img8 = cv2.medianBlur(img8, 3)
+    edges = cv2.Canny(img8, 40, 120)
+    lines = cv2.HoughLinesP(
+        edges, 1, np.pi / 180, opts.hough_threshold, minLineLength=5, maxLineGap=2
+    )
+    if lines is None:
+        return 0, 0.0, 0.0
+    c = (patch.shape[1] - 1) / 2.0
+    found = set()
+    vx: list[float] = []
+    hy: list[float] = []
+    for x1, y1, x2, y2 in lines[:, 0, :].astype(float):
+        dx, dy = x2 - x1, y2 - y1
+        if abs(dx) < 0.2 * abs(dy):  # vertical
+            xm = 0.5 * (x1 + x2)
+            if abs(xm - c) > 3:
+                continue
+            vx.append(xm)
+            found.add("up" if min(y1, y2) < c - 1 else "down")
+            if max(y1, y2) > c + 1:
+                found.add("down")
+        elif abs(dy) < 0.2 * abs(dx):  # horizontal
+            ym = 0.5 * (y1 + y2)
+            if abs(ym - c) > 3:
+                continue
+            hy.append(ym)
+            found.add("left" if min(x1, x2) < c - 1 else "right")
+            if max(x1, x2) > c + 1:
+                found.add("right")
+    ddx = float(np.median(vx) - c) if vx else 0.0
+    ddy = float(np.median(hy) - c) if hy else 0.0
+    return len(found), ddx, ddy
+
+
+@dataclass
+class _Block:
+    """Profiles of one edge block of one micro-image."""
+
+    owner: int
+    name: str  # "A", "D" (vertical edge, row profiles), "B", "C" (horizontal edge, column profiles)
+    along: NDArray[np.float64]  # row (A, D) or column (B, C) coordinate of each profile
+    start: NDArray[np.float64]  # coordinate of the first sample across the edge
+    rows: slice | None = None  # where its profiles sit in the batch
+
+
+def _collect_blocks(
+    img: NDArray[np.float32],
+    owner: int,
+    x0: int,
+    y0: int,
+    centre: tuple[float, float],
+    radius: float,
+    opts: CornerOptions,
+) -> tuple[list[_Block], list[NDArray[np.float32]]]:
+    """Row/column profiles of the four edge blocks around the start point ``(x0, y0)``."""
+    h = opts.profile_half_px
+    blocks: list[_Block] = []
+    profiles: list[NDArray[np.float32]] = []
+    height, width = img.shape
+    cx, cy = centre
+    offsets = np.arange(-h, h + 1)
+    r2 = radius * radius
+    span = int(radius) + 1
+    for name, sign, first in (("A", -1, 0), ("D", 1, 1)):
+        ys = y0 + sign * np.arange(first, span + 1)
+        # the whole profile must lie in the interior disc and in the frame
+        ok = (ys >= 0) & (ys < height) & (x0 - h >= 0) & (x0 + h < width)
+        far = np.maximum((x0 - h - cx) ** 2, (x0 + h - cx) ** 2) + (ys - cy) ** 2
+        ys = ys[ok & (far <= r2)]
+        if ys.size:
+            profiles.append(img[ys[:, None], x0 + offsets[None, :]])
+            blocks.append(_Block(owner, name, ys.astype(float), np.full(ys.size, x0 - h, float)))
+    for name, sign, first in (("B", -1, 0), ("C", 1, 1)):
+        xs = x0 + sign * np.arange(first, span + 1)
+        ok = (xs >= 0) & (xs < width) & (y0 - h >= 0) & (y0 + h < height)
+        far = np.maximum((y0 - h - cy) ** 2, (y0 + h - cy) ** 2) + (xs - cx) ** 2
+        xs = xs[ok & (far <= r2)]
+        if xs.size:
+            profiles.append(img[y0 + offsets[:, None], xs[None, :]].T)
+            blocks.append(_Block(owner, name, xs.astype(float), np.full(xs.size, y0 - h, float)))
+    return blocks, profiles
+
+
+def _deficit_width(first: tuple, second: tuple, window_px: float) -> float:  # type: ignore[type-arg]
+    """Equivalent width of the unresolved region along one edge (pixels).
+
+    The sum over the profiles within ``window_px`` of the corner of the
+    missing fraction of edge contrast ``1 - C/C_far``: one profile per pixel,
+    so the sum is the width of a region with no edge at all that would lose
+    the same contrast. It grows with the blur; the reference corner's gap adds
+    about ``Cr`` in pixels.
+    """
+    along = np.concatenate([first[0], second[0]])
+    ratio = np.concatenate([first[4], second[4]])
+    centre = first[0][0]
+    near = np.abs(along - centre) <= window_px
+    expected = 2 * int(window_px) + 1
+    if int(near.sum()) < expected:
+        return float("nan")
+    return float(np.sum(1.0 - ratio[near]))
+
+
+def _edge_from_blocks(
+    first: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]],
+    second: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]],
+) -> tuple[float, float, float, float, float]:
+    """Common-slope line fit through the edge points of two opposite blocks.
+
+    Each block is ``(along, across, se, use)``. Returns ``(intercept_first,
+    intercept_second, slope, se of the mean intercept, reference coordinate)``:
+    the edge point at ``along = ref`` is ``mean(intercepts)``.
+    """
+    a1, c1, s1, u1 = first
+    a2, c2, s2, u2 = second
+    along = np.concatenate([a1[u1], a2[u2]])
+    across = np.concatenate([c1[u1], c2[u2]])
+    se = np.concatenate([s1[u1], s2[u2]])
+    ref = float(0.5 * (np.mean(a1[u1]) + np.mean(a2[u2])))
+    wts = 1.0 / np.maximum(se, 0.005) ** 2
+    design = np.zeros((along.size, 3))
+    n1 = int(u1.sum())
+    design[:n1, 0] = 1.0
+    design[n1:, 1] = 1.0
+    design[:, 2] = along - ref
+    sw = np.sqrt(wts)
+    coef, *_ = np.linalg.lstsq(design * sw[:, None], across * sw, rcond=None)
+    resid = across - design @ coef
+    dof = max(1, along.size - 3)
+    s2_unit = float(np.sum(wts * resid**2) / dof)
+    cov = np.linalg.pinv((design * wts[:, None]).T @ design) * max(s2_unit, 1.0)
+    mean_se = 0.5 * float(np.sqrt(max(cov[0, 0] + cov[1, 1] + 2 * cov[0, 1], 0.0)))
+    return float(coef[0]), float(coef[1]), float(coef[2]), mean_se, ref
+
+
+def measure_corners(
+    frame: NDArray[np.floating] | NDArray[np.integer],
+    starts: list[tuple[int, int, float, float]],
+    image_grid: LensGrid,
+    *,
+    interior_radius_px: float,
+    options: CornerOptions | None = None,
+) -> list[CornerMeasurement]:
+    """ESIF corner measurement for each start ``(i, j, x0, y0)`` (lens index, rough position).
+
+    All edge profiles of all micro-images are fitted in one batch.
+    """
+    opts = options or CornerOptions()
+    img = np.asarray(frame, dtype=np.float32)
+    height, width = img.shape
+    results: list[CornerMeasurement] = []
+    all_blocks: list[_Block] = []
+    all_profiles: list[NDArray[np.float32]] = []
+    hp = opts.profile_half_px
+    win = int(round(interior_radius_px))
+    for owner, (i, j, xs, ys) in enumerate(starts):
+        m = CornerMeasurement(lens_i=int(i), lens_j=int(j))
+        results.append(m)
+        cx, cy = image_grid.centre(i, j)
+        cxf, cyf = float(cx), float(cy)
+        x0, y0 = int(round(xs)), int(round(ys))
+        if not (win <= x0 < width - win and win <= y0 < height - win):
+            if not (hp <= x0 < width - hp and hp <= y0 < height - hp):
+                m.reason = "corner candidate at the frame border"
+                continue
+        patch_r = min(win, x0, y0, width - 1 - x0, height - 1 - y0)
+        patch = img[y0 - patch_r : y0 + patch_r + 1, x0 - patch_r : x0 + patch_r + 1]
+        m.hough_lines, ddx, ddy = _hough_refine(patch, opts)
+        if abs(ddx) <= 2 and abs(ddy) <= 2:
+            x0, y0 = int(round(x0 + ddx)), int(round(y0 + ddy))
+        if np.hypot(x0 - cxf, y0 - cyf) > interior_radius_px - 2:
+            m.reason = "corner outside the micro-image interior (rim or vignetting)"
+            continue
+        blocks, profiles = _collect_blocks(img, owner, x0, y0, (cxf, cyf), interior_radius_px, opts)
+        for b, p in zip(blocks, profiles, strict=True):
+            start = sum(len(q) for q in all_profiles)
+            b.rows = slice(start, start + len(p))
+            all_blocks.append(b)
+            all_profiles.append(p)
+    if not all_profiles:
+        return results
+    fits = fit_edges(np.concatenate(all_profiles, axis=0))
+    by_owner: dict[int, dict[str, _Block]] = {}
+    for b in all_blocks:
+        by_owner.setdefault(b.owner, {})[b.name] = b
+    for owner, blocks in by_owner.items():
+        _finish(results[owner], blocks, fits, opts)
+    return results
+
+
+def _finish(m: CornerMeasurement, blocks: dict[str, _Block], fits, opts: CornerOptions) -> None:  # type: ignore[no-untyped-def]
+    missing = [n for n in "ADBC" if n not in blocks]
+    if missing:
+        m.reason = f"edge block(s) {', '.join(missing)} fall outside the micro-image interior"
+        return
+    per: dict[str, tuple] = {}
+    widths: list[NDArray[np.float64]] = []
+    resid: list[NDArray[np.float64]] = []
+    contrast_far: dict[str, float] = {}
+    for edge, names in (("v", "AD"), ("h", "BC")):
+        cs = []
+        for n in names:
+            b = blocks[n]
+            rows = b.rows
+            assert rows is not None
+            c = np.where(fits.ok[rows], np.abs(fits.contrast[rows]), 0.0)
+            far = c[len(c) // 2 :] if len(c) >= 4 else c
+            cs.append(far[far > 0])
+        allc = np.concatenate(cs) if cs else np.empty(0)
+        contrast_far[edge] = float(np.median(allc)) if allc.size else 0.0
+    for n in "ADBC":
+        b = blocks[n]
+        rows = b.rows
+        assert rows is not None
+        edge = "v" if n in "AD" else "h"
+        cfar = contrast_far[edge]
+        ok = fits.ok[rows]
+        contrast = np.where(ok, np.abs(fits.contrast[rows]), 0.0)
+        ratio = contrast / cfar if cfar > 0 else np.zeros_like(contrast)
+        across = b.start + fits.position[rows]
+        use = ok & (ratio >= opts.resolved_contrast)
+        per[n] = (b.along, across, fits.position_se[rows], use, ratio)
+        m.points[n] = int(use.sum())
+        widths.append(fits.width[rows][use])
+        resid.append(fits.rms_residual[rows][use] / max(cfar, 1e-9))
+    few = [n for n in "ADBC" if m.points[n] < opts.min_points_per_block]
+    if few:
+        m.reason = "too few resolved edge points in block(s) " + ", ".join(
+            f"{n} ({m.points[n]})" for n in few
+        )
+        return
+    xa, xd, _, x_se, _ = _edge_from_blocks(per["A"][:4], per["D"][:4])
+    yb, yc, _, y_se, _ = _edge_from_blocks(per["B"][:4], per["C"][:4])
+    if abs(xa - xd) > opts.max_block_offset_px or abs(yb - yc) > opts.max_block_offset_px:
+        m.reason = (
+            f"the two sides of an edge disagree by {max(abs(xa - xd), abs(yb - yc)):.1f} px "
+            "(not a corner, or two different edges)"
+        )
+        return
+    m.x = 0.5 * (xa + xd)
+    m.y = 0.5 * (yb + yc)
+    m.x_se, m.y_se = x_se, y_se
+    m.size_y_px = _deficit_width(per["A"], per["D"], opts.size_window_px)
+    m.size_x_px = _deficit_width(per["B"], per["C"], opts.size_window_px)
+    m.edge_width_px = float(np.median(np.concatenate(widths)))
+    m.residual_rms = float(np.sqrt(np.mean(np.concatenate(resid) ** 2)))
+    m.ok = bool(np.isfinite(m.size_x_px) and np.isfinite(m.size_y_px))
+    if not m.ok:
+        m.reason = "corner size undefined (edge contrast never reaches half)"

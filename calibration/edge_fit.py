@@ -1,0 +1,141 @@
+"""Batched sub-pixel edge fits: the edge-spread model of ESIF step 3.
+
+Each profile is a run of grey values sampled across an edge at integer
+positions ``t = 0 .. K-1`` (pixels). The model is a blurred step,
+
+    I(t) = B + C · ∫ Φ((τ - t0) / w) dτ   over the pixel τ ∈ [t - ½, t + ½],
+
+Φ the standard normal CDF: a Gaussian-blurred step integrated over the pixel
+area, with background ``B``, signed contrast ``C``, edge position ``t0`` (the
+point of largest derivative of the fitted curve, the sub-pixel edge point) and
+edge spread ``w`` (the Gaussian sigma of the blur *before* pixel integration,
+pixels). Modelling the pixel area keeps ``w`` free of the sampling phase, which
+otherwise dominates the fitted width of a nearly sharp edge. All
+profiles are fitted at once with a damped Gauss–Newton (Levenberg–Marquardt)
+iteration vectorized over profiles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtr
+
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class EdgeFits:
+    """Per-profile fit results (arrays of length N; positions in profile pixels)."""
+
+    position: NDArray[np.float64]
+    width: NDArray[np.float64]
+    background: NDArray[np.float64]
+    contrast: NDArray[np.float64]
+    rms_residual: NDArray[np.float64]
+    position_se: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+
+
+def _model(t: NDArray[np.float64], p: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    """Pixel-integrated blurred step and its Jacobian ``(N, K, 4)``.
+
+    With ``G(z) = z Φ(z) + φ(z)`` (so ``G' = Φ``), the pixel integral is
+    ``w [G(z+) - G(z-)]``, ``z± = (t ± ½ - t0)/w``.
+    """
+    B, C, t0, w = (p[:, k : k + 1] for k in range(4))
+    zp = (t[None, :] + 0.5 - t0) / w
+    zm = (t[None, :] - 0.5 - t0) / w
+    phi_p = np.exp(-0.5 * zp * zp) / _SQRT_2PI
+    phi_m = np.exp(-0.5 * zm * zm) / _SQRT_2PI
+    Phi_p, Phi_m = ndtr(zp), ndtr(zm)
+    box = w * ((zp * Phi_p + phi_p) - (zm * Phi_m + phi_m))
+    value = B + C * box
+    jac = np.stack([np.ones_like(zp), box, -C * (Phi_p - Phi_m), C * (phi_p - phi_m)], axis=-1)
+    return value, jac
+
+
+def fit_edges(
+    profiles: NDArray[np.floating],
+    *,
+    max_iter: int = 12,
+    min_width: float = 0.0,
+    max_width: float = 6.0,
+) -> EdgeFits:
+    """Fit the blurred-step model to every row of ``profiles`` (shape ``(N, K)``).
+
+    ``ok`` is False when a fit did not converge, left the profile, or has a
+    width outside ``[min_width, max_width]`` pixels.
+    """
+    y = np.asarray(profiles, dtype=np.float64)
+    if y.ndim != 2 or y.shape[1] < 5:
+        raise ValueError("profiles must be a 2-D array with at least 5 samples per profile")
+    n, k = y.shape
+    t = np.arange(k, dtype=np.float64)
+    # initial guess: step from the ends, position at the steepest gradient
+    ends = max(1, k // 5)
+    B = y[:, :ends].mean(axis=1)
+    C = y[:, -ends:].mean(axis=1) - B
+    grad = np.abs(np.diff(y, axis=1))
+    i = np.argmax(grad, axis=1)
+    t0 = i + 0.5
+    w = np.full(n, 0.8)
+    p = np.stack([B, C, t0, w], axis=1)
+    lam = np.full(n, 1e-3)
+    value, jac = _model(t, p)
+    r = y - value
+    cost = np.einsum("nk,nk->n", r, r)
+    for _ in range(max_iter):
+        jtj = np.einsum("nki,nkj->nij", jac, jac)
+        jtr = np.einsum("nki,nk->ni", jac, r)
+        diag = np.einsum("nii->ni", jtj)
+        a = jtj + (lam[:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(4)[None]
+        try:
+            step = np.linalg.solve(a, jtr[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(a.reshape(-1, 4), jtr.reshape(-1), rcond=None)[0].reshape(n, 4)
+        trial = p + step
+        trial[:, 3] = np.clip(trial[:, 3], 0.02, 50.0)
+        t_value, t_jac = _model(t, trial)
+        t_r = y - t_value
+        t_cost = np.einsum("nk,nk->n", t_r, t_r)
+        better = t_cost < cost
+        p[better] = trial[better]
+        value[better], jac[better], r[better], cost[better] = (
+            t_value[better],
+            t_jac[better],
+            t_r[better],
+            t_cost[better],
+        )
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+        if np.all(np.abs(step[:, 2]) < 1e-5):
+            break
+    dof = max(1, k - 4)
+    sigma2 = cost / dof
+    jtj = np.einsum("nki,nkj->nij", jac, jac)
+    cov_tt = np.full(n, np.inf)
+    good_cond = np.linalg.cond(jtj) < 1e12
+    if np.any(good_cond):
+        cov = np.linalg.inv(jtj[good_cond])
+        cov_tt[good_cond] = cov[:, 2, 2]
+    position_se = np.sqrt(np.maximum(sigma2 * cov_tt, 0.0))
+    width = np.abs(p[:, 3])
+    ok = (
+        np.isfinite(p).all(axis=1)
+        & (p[:, 2] > 1.0)
+        & (p[:, 2] < k - 2.0)
+        & (width >= min_width)
+        & (width <= max_width)
+        & np.isfinite(position_se)
+    )
+    return EdgeFits(
+        position=p[:, 2],
+        width=width,
+        background=p[:, 0],
+        contrast=p[:, 1],
+        rms_residual=np.sqrt(cost / k),
+        position_se=position_se,
+        ok=ok,
+    )

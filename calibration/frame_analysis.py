@@ -1,0 +1,262 @@
+"""Analysis of one raw frame: corners of the standard and the reference corner, Q, corner sizes.
+
+The station streams frames through :func:`analyze_frame` while the sweep runs;
+the offline calibration runs the same function over an archive.
+
+Identification. Every micro-image with a saddle is measured; its corner's main
+image position follows from OPTICS.md §1, ``s = (1+Q)·m - Q·r`` (corner image
+``s``, lens centre ``m``, main image ``r``, all in sensor pixels), with a first
+``Q`` from neighbouring micro-images. The board point is then
+``-(r - pp)·δ·u/v(u)`` (the main lens inverts), rounded to the board's corner
+lattice: ``(0, 0)`` is the standard corner, ``(2s, 0)`` the reference corner.
+
+Disparity. Per corner, a least-squares fit of ``s_k = (1+Q)·m_k + c`` over all
+its micro-images gives ``Q`` and its standard error (lens centres from the
+lens lattice, pitch ``D/δ``: Eq. 2 needs lens-centre spacing). The paper's
+Eq. 3 (mean over adjacent pairs along x) is reported beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .board import Board
+from .corners import (
+    CornerMeasurement,
+    CornerOptions,
+    MicroImageMap,
+    find_junctions,
+    measure_corners,
+)
+from .lens_grid import LensGrid
+from .optics import image_distance
+
+
+@dataclass(frozen=True)
+class FrameContext:
+    """What the analysis of every frame of a sweep shares (pixels, mm)."""
+
+    image_grid: LensGrid
+    lens_grid: LensGrid
+    principal_point_px: tuple[float, float]
+    pixel_pitch_mm: float
+    main_focal_mm: float
+    board: Board
+    interior_radius_px: float
+    options: CornerOptions = field(default_factory=CornerOptions)
+
+
+@dataclass
+class CornerFit:
+    """Disparity fit of one board corner in one frame."""
+
+    name: str
+    measurements: list[CornerMeasurement]
+    used: NDArray[np.bool_]
+    Q: float = float("nan")
+    Q_se: float = float("nan")
+    Q_eq3: float = float("nan")
+    main_image_px: tuple[float, float] = (float("nan"), float("nan"))
+    residual_rms_px: float = float("nan")
+    size_px: float = float("nan")
+    edge_width_px: float = float("nan")
+    note: str = ""
+
+    @property
+    def n_used(self) -> int:
+        return int(self.used.sum())
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "found": bool(np.isfinite(self.Q)),
+            "micro_images": len(self.measurements),
+            "used": self.n_used,
+            "Q": self.Q,
+            "Q_se": self.Q_se,
+            "Q_eq3": self.Q_eq3,
+            "main_image_px": list(self.main_image_px),
+            "residual_rms_px": self.residual_rms_px,
+            "size_px": self.size_px,
+            "edge_width_px": self.edge_width_px,
+            "note": self.note,
+        }
+
+
+@dataclass
+class FrameResult:
+    """Everything measured in one frame."""
+
+    object_distance_mm: float
+    standard: CornerFit | None
+    reference: CornerFit | None
+    rejected: dict[str, int]
+
+    @property
+    def Q(self) -> float:
+        """Inverse-variance weighted Q of the corners found."""
+        fits = [f for f in (self.standard, self.reference) if f and np.isfinite(f.Q)]
+        if not fits:
+            return float("nan")
+        w = np.array([1.0 / max(f.Q_se, 1e-9) ** 2 for f in fits])
+        return float(np.sum(w * np.array([f.Q for f in fits])) / np.sum(w))
+
+    @property
+    def Q_se(self) -> float:
+        fits = [f for f in (self.standard, self.reference) if f and np.isfinite(f.Q)]
+        if not fits:
+            return float("nan")
+        return float(1.0 / np.sqrt(sum(1.0 / max(f.Q_se, 1e-9) ** 2 for f in fits)))
+
+    @property
+    def Ls_px(self) -> float:
+        return self.standard.size_px if self.standard else float("nan")
+
+    @property
+    def Lr_px(self) -> float:
+        return self.reference.size_px if self.reference else float("nan")
+
+    @property
+    def edge_width_px(self) -> float:
+        """Mean edge-spread sigma over both corners' micro-images (px)."""
+        vals = [f.edge_width_px for f in (self.standard, self.reference) if f and f.n_used]
+        return float(np.mean(vals)) if vals else float("nan")
+
+
+def _rough_q(meas: list[CornerMeasurement], ctx: FrameContext) -> float:
+    """Median of ``Δs/Δm - 1`` over adjacent micro-image pairs (a first Q for identification)."""
+    pos = {(m.lens_i, m.lens_j): (m.x, m.y) for m in meas if m.ok}
+    e1 = ctx.lens_grid.e1
+    e2 = ctx.lens_grid.e2
+    ratios = []
+    for (i, j), (x, y) in pos.items():
+        for di, dj, e in ((1, 0, e1), (0, 1, e2)):
+            other = pos.get((i + di, j + dj))
+            if other is not None:
+                d = (other[0] - x) * e[0] + (other[1] - y) * e[1]
+                ratios.append(d / ctx.lens_grid.pitch_px - 1.0)
+    ratios_arr = np.array(ratios)
+    ratios_arr = ratios_arr[(ratios_arr > 0.01) & (ratios_arr < 2.0)]
+    return float(np.median(ratios_arr)) if ratios_arr.size else float("nan")
+
+
+def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
+    """Least-squares ``s = (1+Q)·m + c`` with iterative 4-sigma outlier rejection."""
+    ok = np.array([m.ok for m in fit.measurements], dtype=bool)
+    if ok.sum() < 3:
+        fit.used = ok & False
+        fit.note = f"only {int(ok.sum())} micro-images measured (need 3)"
+        return
+    ii = np.array([m.lens_i for m in fit.measurements])
+    jj = np.array([m.lens_j for m in fit.measurements])
+    mx, my = ctx.lens_grid.centre(ii, jj)
+    sx = np.array([m.x for m in fit.measurements])
+    sy = np.array([m.y for m in fit.measurements])
+    se = np.array([max(m.x_se, m.y_se, 0.003) for m in fit.measurements])
+    use = ok.copy()
+    for _ in range(4):
+        n = int(use.sum())
+        if n < 3:
+            break
+        design = np.zeros((2 * n, 3))
+        design[:n, 0] = mx[use]
+        design[n:, 0] = my[use]
+        design[:n, 1] = 1.0
+        design[n:, 2] = 1.0
+        target = np.concatenate([sx[use], sy[use]])
+        wts = 1.0 / np.concatenate([se[use], se[use]]) ** 2
+        sw = np.sqrt(wts)
+        coef, *_ = np.linalg.lstsq(design * sw[:, None], target * sw, rcond=None)
+        resid = target - design @ coef
+        chi2 = float(np.sum(wts * resid**2) / max(1, 2 * n - 3))
+        cov = np.linalg.inv((design * wts[:, None]).T @ design) * max(chi2, 1.0)
+        rx = sx - (coef[0] * mx + coef[1])
+        ry = sy - (coef[0] * my + coef[2])
+        r = np.hypot(rx, ry)
+        scale = 1.4826 * float(np.median(r[use])) + 1e-3
+        new_use = ok & (r <= 4.0 * scale + 3.0 * se)
+        if np.array_equal(new_use, use):
+            break
+        use = new_use
+    fit.used = use
+    q = coef[0] - 1.0
+    fit.Q = float(q)
+    fit.Q_se = float(np.sqrt(cov[0, 0]))
+    fit.main_image_px = (float(-coef[1] / q), float(-coef[2] / q))
+    fit.residual_rms_px = float(np.sqrt(np.mean(r[use] ** 2)))
+    used = [m for m, u in zip(fit.measurements, use, strict=True) if u]
+    sizes = np.array([m.size_px for m in used])
+    fit.size_px = float(np.nanmean(sizes)) if np.isfinite(sizes).any() else float("nan")
+    fit.edge_width_px = float(np.mean([m.edge_width_px for m in used]))
+    fit.Q_eq3 = _eq3(used, ctx)
+
+
+def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:
+    """The paper's Eq. 3: mean over x-adjacent pairs of ``(x_ui - x_ui+1)/(x_Mi - x_Mi+1) - 1``."""
+    pos = {(m.lens_i, m.lens_j): m for m in used}
+    vals = []
+    for (i, j), m in pos.items():
+        other = pos.get((i + 1, j))
+        if other is None:
+            continue
+        mx0, _ = ctx.lens_grid.centre(i, j)
+        mx1, _ = ctx.lens_grid.centre(i + 1, j)
+        vals.append((m.x - other.x) / (float(mx0) - float(mx1)) - 1.0)
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def analyze_frame(
+    frame: NDArray[np.integer] | NDArray[np.floating],
+    ctx: FrameContext,
+    object_distance_mm: float,
+    *,
+    micro_image_map: MicroImageMap | None = None,
+) -> FrameResult:
+    """Find and measure the standard and reference corners in one raw frame.
+
+    ``micro_image_map`` may be passed in to reuse it across frames of a sweep.
+    """
+    mim = micro_image_map or MicroImageMap(ctx.image_grid, frame.shape, ctx.interior_radius_px)
+    junctions = find_junctions(frame, mim, sigma_px=ctx.options.saddle_sigma_px)
+    starts = [
+        (int(i), int(j), float(x), float(y))
+        for i, j, x, y in zip(junctions.i, junctions.j, junctions.x, junctions.y, strict=True)
+    ]
+    meas = measure_corners(
+        frame,
+        starts,
+        ctx.image_grid,
+        interior_radius_px=ctx.interior_radius_px,
+        options=ctx.options,
+    )
+    rejected: dict[str, int] = {}
+    for m in meas:
+        if not m.ok:
+            rejected[m.reason] = rejected.get(m.reason, 0) + 1
+    q0 = _rough_q(meas, ctx)
+    groups: dict[tuple[int, int], list[CornerMeasurement]] = {}
+    if np.isfinite(q0) and q0 > 0:
+        v = float(image_distance(object_distance_mm, ctx.main_focal_mm))
+        mm_per_px = ctx.pixel_pitch_mm * object_distance_mm / v
+        cx, cy = ctx.principal_point_px
+        s = ctx.board.square_mm
+        for m in meas:
+            if not m.ok:
+                continue
+            mx, my = ctx.lens_grid.centre(m.lens_i, m.lens_j)
+            rx = ((1 + q0) * float(mx) - m.x) / q0
+            ry = ((1 + q0) * float(my) - m.y) / q0
+            bx, by = -(rx - cx) * mm_per_px, -(ry - cy) * mm_per_px
+            key = (int(round(bx / s)), int(round(by / s)))
+            groups.setdefault(key, []).append(m)
+    result = FrameResult(object_distance_mm, None, None, rejected)
+    for name, key in (("standard", (0, 0)), ("reference", (2, 0))):
+        members = groups.get(key, [])
+        if not members:
+            continue
+        fit = CornerFit(name, members, np.zeros(len(members), dtype=bool))
+        _fit_disparity(fit, ctx)
+        setattr(result, name, fit)
+    return result
