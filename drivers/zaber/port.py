@@ -1,0 +1,381 @@
+"""Serial transport for Zaber ASCII devices: one chain of devices on one port.
+
+Any pyserial URL works (``serial.serial_for_url``): a device path such as
+``/dev/ttyUSB0`` or ``/dev/serial/by-id/...``, a pseudo-terminal
+``/dev/pts/N``, or ``socket://127.0.0.1:PORT``.  Settings are 115200 8N1,
+no flow control; real ports are opened with an exclusive lock
+(``exclusive=True``, a ``flock`` on POSIX) so a second program cannot talk on
+the same chain.
+
+Every command goes out with a message id (1-99, cycling) and a checksum.
+A reply is accepted only when its device, axis and id match the command and,
+once :meth:`ZaberPort.enable_checksums` ran for that device, its checksum is
+present and right.  Anything else on the line -- alerts, info messages, late
+replies to earlier attempts, other devices' replies, corrupted lines -- is
+discarded and counted in :attr:`ZaberPort.stats`.
+
+Retries: when no valid reply arrives within ``reply_timeout_s``, a command is
+sent again (up to ``retries`` more times) only if re-sending it is harmless
+(:func:`drivers.zaber.protocol.is_idempotent`: get, set, stop, estop, home,
+move abs, the status poll).  ``move rel`` and ``warnings clear`` are never
+repeated; their failure raises at once with a hint that the command may have
+been executed.  ``Reply.attempts`` tells callers a command was repeated (a
+repeated move makes the device raise the NI flag, which is then expected).
+
+The port is thread-safe: one request (write + matching reply) at a time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import serial
+
+from drivers.errors import (
+    ChecksumError,
+    ConnectionLost,
+    GarbledReply,
+    NoReply,
+    PortUnavailable,
+)
+from drivers.zaber import protocol
+from drivers.zaber.protocol import Alert, Reply
+
+BAUDRATE = 115200
+#: Granularity (s) of blocking reads; replies are picked up as soon as they arrive.
+_READ_SLICE_S = 0.01
+_MAX_LINE = 1024
+
+
+@dataclass
+class PortStats:
+    """Counters of what the transport saw (for diagnostics and tests)."""
+
+    requests: int = 0
+    retries: int = 0
+    garbled: int = 0
+    stale: int = 0
+    alerts: int = 0
+    other: int = 0
+
+
+class ZaberPort:
+    """One serial chain of Zaber devices.
+
+    Args:
+        url: pyserial port or URL (``/dev/ttyUSB0``, ``/dev/pts/3``, ``socket://127.0.0.1:9000``).
+        name: label used in error messages (defaults to the URL).
+        reply_timeout_s: seconds to wait for each reply.
+        retries: extra attempts for idempotent commands.
+        baudrate: line speed (Zaber default 115200).
+        exclusive: lock the port against other programs (real ports).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        name: str | None = None,
+        reply_timeout_s: float = 0.5,
+        retries: int = 2,
+        baudrate: int = BAUDRATE,
+        exclusive: bool = True,
+    ) -> None:
+        if reply_timeout_s <= 0:
+            raise ValueError("reply_timeout_s must be positive")
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        self._url = url
+        self._name = name or url
+        self.reply_timeout_s = reply_timeout_s
+        self.retries = retries
+        self._baudrate = baudrate
+        self._exclusive = exclusive
+        self._serial: Any = None
+        self._lock = threading.RLock()
+        self._buffer = bytearray()
+        self._next_id = 0
+        self._checksummed: set[int] = set()
+        self.stats = PortStats()
+        #: Last alerts received (they are not needed for operation; kept for diagnostics).
+        self.alerts: deque[Alert] = deque(maxlen=32)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def url(self) -> str:
+        """The pyserial URL or path of the port."""
+        return self._url
+
+    @property
+    def name(self) -> str:
+        """Label used in error messages."""
+        return self._name
+
+    @property
+    def is_open(self) -> bool:
+        """True while the port is open."""
+        return self._serial is not None
+
+    def open(self) -> ZaberPort:
+        """Open the port (115200 8N1, exclusive). Raises PortUnavailable."""
+        with self._lock:
+            if self._serial is not None:
+                return self
+            try:
+                ser = serial.serial_for_url(
+                    self._url,
+                    baudrate=self._baudrate,
+                    bytesize=serial.EIGHTBITS,
+                    parity=serial.PARITY_NONE,
+                    stopbits=serial.STOPBITS_ONE,
+                    timeout=_READ_SLICE_S,
+                    write_timeout=2.0,
+                    exclusive=self._exclusive if "://" not in self._url else None,
+                    do_not_open=True,
+                )
+                ser.open()
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise self._open_error(exc) from exc
+            self._serial = ser
+            self._buffer.clear()
+            self._checksummed.clear()
+            try:
+                ser.reset_input_buffer()  # drop bytes left over from a previous session
+            except (serial.SerialException, OSError):
+                pass
+            return self
+
+    def _open_error(self, exc: BaseException) -> PortUnavailable:
+        code = getattr(exc, "errno", None)
+        text = str(exc)
+        if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO) or "No such file" in text:
+            hint = (
+                "the port path (ls /dev/serial/by-id); is the USB-serial adapter plugged in "
+                "and the stage powered?"
+            )
+        elif code in (errno.EACCES, errno.EPERM) or "Permission denied" in text:
+            hint = "permissions: add the user to the 'dialout' group, or fix the udev rule"
+        elif code in (errno.EAGAIN, errno.EBUSY) or "exclusive" in text.lower():
+            hint = "another program (or another station instance) has this port open"
+        elif "refused" in text.lower() or code == errno.ECONNREFUSED:
+            hint = "is the server (e.g. 'lfcal emulate-stage --tcp PORT') running on that port?"
+        else:
+            hint = None
+        return PortUnavailable(f"cannot open port {self._url}: {text}", device=self._name, hint=hint)
+
+    def close(self) -> None:
+        """Close the port (idempotent)."""
+        with self._lock:
+            ser, self._serial = self._serial, None
+            if ser is not None:
+                try:
+                    ser.close()
+                except (serial.SerialException, OSError):
+                    pass
+
+    def __enter__(self) -> ZaberPort:
+        return self.open()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ requests
+
+    def request(
+        self,
+        device: int,
+        axis: int,
+        text: str,
+        *,
+        label: str | None = None,
+        timeout_s: float | None = None,
+        retry: bool | None = None,
+        require_checksum: bool | None = None,
+    ) -> Reply:
+        """Send one command and return the device's matching reply.
+
+        Args:
+            device: device number 1-99 (use :meth:`broadcast` for 0).
+            axis: 0 (device) or 1-9.
+            text: command and data, e.g. ``"get pos"``.
+            label: device name for error messages (default: port name + numbers).
+            timeout_s: seconds to wait for each attempt's reply.
+            retry: allow re-sending; default: only if the command is idempotent.
+            require_checksum: default: True once checksums were enabled on ``device``.
+
+        ``RJ`` replies are returned, not raised: the caller knows what they mean.
+        Raises NoReply, GarbledReply/ChecksumError, ConnectionLost, PortUnavailable.
+        """
+        if not 1 <= device <= protocol.MAX_DEVICE:
+            raise ValueError(f"device number {device} outside 1-{protocol.MAX_DEVICE}")
+        label = label or f"{self._name} device {device} axis {axis}"
+        if retry is None:
+            retry = protocol.is_idempotent(text)
+        if require_checksum is None:
+            require_checksum = device in self._checksummed
+        timeout = self.reply_timeout_s if timeout_s is None else timeout_s
+        attempts = 1 + (self.retries if retry else 0)
+        failure: NoReply | GarbledReply | None = None
+        with self._lock:
+            for attempt in range(1, attempts + 1):
+                if attempt > 1:
+                    self.stats.retries += 1
+                try:
+                    reply = self._transact(device, axis, text, timeout, require_checksum, label)
+                except (NoReply, GarbledReply) as exc:
+                    failure = exc
+                    continue
+                return dataclasses.replace(reply, attempts=attempt) if attempt > 1 else reply
+        assert failure is not None
+        tries = f"{attempts} attempt{'s' if attempts > 1 else ''}"
+        extra = "" if retry else "; it was not re-sent and may or may not have been executed"
+        failure.message = f"{failure.message} ({tries}{extra})"
+        raise failure
+
+    def enable_checksums(self, device: int, *, label: str | None = None) -> None:
+        """Make ``device`` append checksums to its replies (``set comm.checksum 1``).
+
+        From then on replies from ``device`` without a valid checksum are rejected.
+        """
+        label = label or f"{self._name} device {device}"
+        reply = self.request(
+            device, 0, "set comm.checksum 1", label=label, require_checksum=False
+        )
+        if reply.rejected:
+            raise protocol.rejection_error(reply, command="set comm.checksum 1", device=label)
+        with self._lock:
+            self._checksummed.add(device)
+
+    def broadcast(self, text: str, *, listen_s: float = 0.2) -> list[Reply]:
+        """Send ``text`` to every device (device 0) and collect replies for ``listen_s`` seconds."""
+        with self._lock:
+            message_id = self._take_id()
+            self._write(protocol.format_command(0, 0, text, message_id=message_id), self._name)
+            deadline = time.monotonic() + listen_s
+            replies: list[Reply] = []
+            while True:
+                line = self._read_line(deadline, self._name)
+                if line is None:
+                    return sorted(replies, key=lambda r: r.device)
+                try:
+                    message = protocol.parse_message(line)
+                except GarbledReply:
+                    self.stats.garbled += 1
+                    continue
+                if isinstance(message, Reply) and message.message_id == message_id:
+                    replies.append(message)
+                else:
+                    self._count_discarded(message)
+
+    def discover(self, *, listen_s: float = 0.2) -> dict[int, str]:
+        """Device numbers on the chain mapped to their device ids (``get device.id``)."""
+        return {r.device: r.data for r in self.broadcast("get device.id", listen_s=listen_s)}
+
+    # ------------------------------------------------------------------ internals
+
+    def _take_id(self) -> int:
+        self._next_id = self._next_id % protocol.MAX_MESSAGE_ID + 1
+        return self._next_id
+
+    def _transact(
+        self,
+        device: int,
+        axis: int,
+        text: str,
+        timeout_s: float,
+        require_checksum: bool,
+        label: str,
+    ) -> Reply:
+        message_id = self._take_id()
+        self.stats.requests += 1
+        self._write(protocol.format_command(device, axis, text, message_id=message_id), label)
+        deadline = time.monotonic() + timeout_s
+        bad: GarbledReply | None = None
+        while True:
+            line = self._read_line(deadline, label)
+            if line is None:
+                if bad is not None:
+                    bad.device = label
+                    raise type(bad)(
+                        f"no valid reply to {text!r}; last bad line: {bad.message}", device=label
+                    )
+                raise NoReply(f"no reply to {text!r} within {timeout_s:.2f} s", device=label)
+            try:
+                message = protocol.parse_message(line, require_checksum=require_checksum)
+            except GarbledReply as exc:
+                self.stats.garbled += 1
+                bad = exc
+                continue
+            if (
+                isinstance(message, Reply)
+                and message.message_id == message_id
+                and message.device == device
+                and message.axis == axis
+            ):
+                return message
+            self._count_discarded(message)
+
+    def _count_discarded(self, message: protocol.Message) -> None:
+        if isinstance(message, Alert):
+            self.stats.alerts += 1
+            self.alerts.append(message)
+        elif isinstance(message, Reply):
+            self.stats.stale += 1
+        else:
+            self.stats.other += 1
+
+    def _port(self, label: str) -> Any:
+        if self._serial is None:
+            raise PortUnavailable(f"port {self._url} is not open", device=label, hint="call open() first")
+        return self._serial
+
+    def _lost(self, exc: BaseException, label: str) -> ConnectionLost:
+        self.close()
+        return ConnectionLost(f"connection on {self._url} lost: {exc}", device=label)
+
+    def _write(self, data: bytes, label: str) -> None:
+        ser = self._port(label)
+        try:
+            ser.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc, label) from exc
+
+    def _read_line(self, deadline: float, label: str) -> bytes | None:
+        """Next complete line (without terminator), or None at the deadline."""
+        ser = self._port(label)
+        buffer = self._buffer
+        while True:
+            newline = buffer.find(b"\n")
+            if newline >= 0:
+                line = bytes(buffer[:newline]).rstrip(b"\r")
+                del buffer[: newline + 1]
+                if line.strip():
+                    return line
+                continue
+            if len(buffer) > _MAX_LINE:
+                self.stats.garbled += 1
+                buffer.clear()
+            if time.monotonic() >= deadline:
+                return None
+            try:
+                waiting = ser.in_waiting
+                chunk = ser.read(waiting if waiting > 0 else 1)
+            except (serial.SerialException, OSError) as exc:
+                raise self._lost(exc, label) from exc
+            buffer += chunk
+
+
+__all__ = ["BAUDRATE", "ChecksumError", "PortStats", "ZaberPort"]
