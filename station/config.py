@@ -760,7 +760,7 @@ def _sweep_problems(
             "sweep.stop_mm",
             "sweep.max_frames",
         )
-    if rail is None:
+    if rail is None or rail.min_mm >= rail.max_mm:
         return
     for key in ("start_mm", "stop_mm"):
         value = getattr(sweep, key)

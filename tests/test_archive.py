@@ -105,6 +105,7 @@ def test_round_trip_is_pixel_exact(tmp_path: Path) -> None:
     assert check.ok and check.good_indices == [0, 1, 2] and check.problems() == []
     # the PNG itself is 16-bit grey with right-aligned counts
     raw = cv2.imread(str(root / "frames/0001.png"), cv2.IMREAD_UNCHANGED)
+    assert raw is not None
     assert raw.dtype == np.uint16 and raw.ndim == 2 and int(raw.max()) == (1 << BITS) - 1
 
 
