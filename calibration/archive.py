@@ -1221,10 +1221,14 @@ class SweepWriter:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        """Commit on success, :meth:`abort` on an exception."""
+        """Commit on success, :meth:`abort` on an exception (or when the commit fails)."""
         if exc_type is None:
             if not self._closed:
-                self.commit()
+                try:
+                    self.commit()
+                except BaseException:
+                    self.abort()
+                    raise
         else:
             self.abort()
 

@@ -416,6 +416,9 @@ def test_commit_requires_white(tmp_path: Path) -> None:
         w.commit()
     w.abort()
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ArchiveError), SweepWriter.create(tmp_path / "s", header()) as w2:
+        w2.add_frame(0, 0.0, image(0))
+    assert list(tmp_path.iterdir()) == []  # a failed commit on exit leaves nothing behind
 
 
 def test_refuses_to_overwrite_unless_asked(tmp_path: Path) -> None:
