@@ -512,3 +512,22 @@ def test_disk_full_is_reported_before_writing(tmp_path: Path) -> None:
     w.reserve_bytes = 0
     w.add_frame(1, 1.0, image(1))
     assert read_manifest(job).indices == [0, 1]
+
+
+def test_simulated_sweep_round_trip(tmp_path: Path) -> None:
+    """The simulator's frames and header go through the writer and come back unchanged."""
+    from calibration.presets import get_preset, with_sweep
+    from calibration.sim_sweep import fit_frame, iter_frames, manifest_header, render_white
+
+    preset = with_sweep(fit_frame(get_preset("paper"), 256, 192), frames=3, start_mm=49.0)
+    frames = list(iter_frames(preset))
+    with SweepWriter.create(tmp_path / "sim", manifest_header(preset)) as w:
+        w.write_white(render_white(preset))
+        for index, rail, img in frames:
+            w.add_frame(index, rail, img)
+    arc = SweepArchive.open(tmp_path / "sim")
+    assert arc.check().ok and arc.manifest.extra == {"simulated": {"preset": "paper"}}
+    assert [e.rail_mm for e in arc.manifest.frames] == [49.0, 50.0, 51.0]
+    assert arc.manifest.object_distance_mm(50.0) == 300.0
+    for (index, _, img), (entry, back) in zip(frames, arc, strict=True):
+        assert entry.index == index and np.array_equal(back, img)
