@@ -9,13 +9,16 @@ in every micro-image that shows them.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+from collections.abc import Callable, Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .archive import SweepWriter
 from .presets import Preset
 from .simulator import SimCamera, corner_images_px, render_frame
 
@@ -205,3 +208,33 @@ def manifest_header(preset: Preset) -> dict[str, Any]:
         "frames": [],
         "simulated": {"preset": preset.name},
     }
+
+
+def write_sweep(
+    out_dir: str | Path,
+    preset: Preset,
+    *,
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Render the preset's sweep into an ``lfcal-sweep/1`` archive plus ``truth.json``.
+
+    Everything is staged in a hidden sibling directory and renamed at the end,
+    so an interrupted run never leaves a complete-looking archive.
+    """
+    writer = SweepWriter.create(out_dir, manifest_header(preset), overwrite=overwrite)
+    try:
+        writer.write_white(render_white(preset, seed))
+        total = preset.sweep.frames
+        for index, rail, image in iter_frames(preset, seed):
+            u = preset.sweep.object_distance_mm(rail)
+            writer.add_frame(index, rail, image, object_distance_mm=u)
+            if progress is not None:
+                progress(index + 1, total)
+        truth_text = json.dumps(truth(preset, seed), indent=1) + "\n"
+        (writer.work_dir / "truth.json").write_text(truth_text, encoding="utf-8")
+        return writer.commit()
+    except BaseException:
+        writer.abort()
+        raise

@@ -1,0 +1,343 @@
+"""The ``lfcal`` console command.
+
+Exit codes (documented in README):
+
+- 0: success;
+- 2: bad input (usage, unreadable or invalid archive/config, impossible optics,
+  unwritable output), one line on stderr naming the problem;
+- 3: calibration failed (too few frames with a board corner); partial results
+  are written when ``--out`` is given;
+- 4: the focus plane is at the edge of the sweep (extend the range); partial
+  results are written when ``--out`` is given;
+- 1: an unexpected internal error (a bug: please report it with the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_BAD_INPUT = 2
+EXIT_CALIBRATION_FAILED = 3
+EXIT_FOCUS_AT_EDGE = 4
+
+
+class UserError(Exception):
+    """A problem the user can fix; printed as one line, exit code 2."""
+
+
+def _progress(label: str) -> Any:
+    start = time.monotonic()
+
+    def report(done: int, total: int) -> None:
+        if not sys.stderr.isatty() and done not in (1, total) and done % 10:
+            return
+        elapsed = time.monotonic() - start
+        width = 30
+        filled = int(width * done / max(total, 1))
+        bar = "#" * filled + "-" * (width - filled)
+        end = "\n" if done == total or not sys.stderr.isatty() else "\r"
+        print(f"{label} [{bar}] {done}/{total} {elapsed:6.1f} s", end=end, file=sys.stderr,
+              flush=True)
+
+    return report
+
+
+def _parse_pair(text: str, what: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"{what} must be two numbers 'X,Y', got {text!r}") from None
+    return x, y
+
+
+# ---------------------------------------------------------------------------- simulate
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from calibration.presets import get_preset, with_sweep
+    from calibration.sim_sweep import fit_frame, write_sweep
+
+    try:
+        preset = get_preset(args.preset)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    changes: dict[str, Any] = {}
+    if args.frames is not None:
+        if args.frames < 1:
+            raise UserError(f"--frames must be at least 1, got {args.frames}")
+        changes["frames"] = args.frames
+    if args.start_mm is not None:
+        changes["start_mm"] = args.start_mm
+    if args.step_mm is not None:
+        if args.step_mm <= 0:
+            raise UserError(f"--step-mm must be positive, got {args.step_mm}")
+        changes["step_mm"] = args.step_mm
+    if changes:
+        preset = with_sweep(preset, **changes)
+    pp = _parse_pair(args.principal_point, "--principal-point") if args.principal_point else None
+    for name in ("width", "height"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise UserError(f"--{name} must be a positive number of pixels, got {value}")
+    try:
+        preset = fit_frame(preset, args.width, args.height, pp)
+    except ValueError as exc:
+        raise UserError(f"impossible camera: {exc}") from None
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise UserError(f"{out} already exists and is not empty (use --overwrite)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        path = write_sweep(out, preset, seed=args.seed, overwrite=args.overwrite,
+                           progress=_progress("simulate"))
+    except PermissionError as exc:
+        raise UserError(f"cannot write {out}: permission denied ({exc.filename})") from None
+    except OSError as exc:
+        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+    cam = preset.camera
+    print(f"wrote {path}: preset {preset.name}, {preset.sweep.frames} frames of "
+          f"{cam.sensor.width}x{cam.sensor.height} px, principal point "
+          f"({cam.sensor.pp[0]:.1f}, {cam.sensor.pp[1]:.1f}), truth in {path / 'truth.json'}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- calibrate
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -> str:
+    """A readable table of the calibrated parameters (and errors against a simulator truth)."""
+    unc = result.get("uncertainty", {})
+    focus = result.get("focus", {})
+    mla = result.get("mla", {})
+    rows: list[tuple[str, str, str, str]] = [
+        ("a (mm)", _fmt(result.get("a_mm")), _fmt(unc.get("a_mm")), "a_mm"),
+        ("b (mm)", _fmt(result.get("b_mm")), _fmt(unc.get("b_mm")), "b_mm"),
+        ("Q = b/a", _fmt(result.get("Q"), 6), _fmt(unc.get("Q"), 6), "Q"),
+        ("patch size p (px)", _fmt(result.get("patch_size_px")),
+         _fmt(unc.get("patch_size_px")), "patch_size_px"),
+        ("focus plane u (mm)", _fmt(focus.get("object_distance_mm"), 2),
+         _fmt(focus.get("uncertainty_mm"), 2), "focus.object_distance_mm"),
+        ("focus rail position (mm)", _fmt(focus.get("rail_mm"), 2),
+         _fmt(focus.get("uncertainty_mm"), 2), "focus.rail_mm"),
+        ("lens pitch (px)", _fmt(mla.get("lens_pitch_px")), "", "mla.lens_pitch_px"),
+        ("micro-image pitch (px)", _fmt(mla.get("image_pitch_px")), "", "mla.image_pitch_px"),
+        ("MLA rotation (deg)", _fmt(mla.get("rotation_deg")), "", "mla.rotation_deg"),
+    ]
+    header = ["quantity", "value", "± 1σ"]
+    truth_vals: dict[str, Any] = {}
+    if truth:
+        header += ["truth", "error"]
+        truth_vals = {
+            "a_mm": truth.get("a_mm"), "b_mm": truth.get("b_mm"), "Q": truth.get("Q"),
+            "patch_size_px": truth.get("patch_size_px"),
+            "focus.object_distance_mm": truth.get("focus", {}).get("object_distance_mm"),
+            "focus.rail_mm": truth.get("focus", {}).get("rail_mm"),
+            "mla.lens_pitch_px": truth.get("mla", {}).get("lens_pitch_px"),
+            "mla.image_pitch_px": truth.get("mla", {}).get("image_pitch_px"),
+            "mla.rotation_deg": truth.get("mla", {}).get("rotation_deg"),
+        }
+    lines = []
+    table = []
+    for name, value, se, key in rows:
+        row = [name, value, se]
+        if truth:
+            t = truth_vals.get(key)
+            row.append(_fmt(t, 4) if isinstance(t, float | int) else "")
+            try:
+                v = float(value)
+                err = v - float(t)  # type: ignore[arg-type]
+                rel = f" ({100 * err / float(t):+.3f} %)" if key in ("a_mm", "b_mm", "Q") else ""
+                row.append(f"{err:+.4f}{rel}")
+            except (TypeError, ValueError):
+                row.append("")
+        table.append(row)
+    widths = [max(len(r[i]) for r in [header, *table]) for i in range(len(header))]
+    lines.append("  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)))
+    lines.append("  ".join("-" * w for w in widths))
+    for row in table:
+        lines.append("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+    found = result.get("corners_found", {})
+    lines.append(
+        f"corners found: standard in {found.get('standard_frames')} and reference in "
+        f"{found.get('reference_frames')} of {found.get('frames')} frames"
+    )
+    cons = result.get("consistency")
+    if cons:
+        lines.append(
+            f"consistency with the global fit: b differs by {cons['b_difference_mm']:+.5f} mm "
+            f"({cons['b_sigma']:.1f} σ), a by {cons['a_difference_mm']:+.4f} mm "
+            f"({cons['a_sigma']:.1f} σ)"
+        )
+    for w in result.get("warnings", []):
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        tmp.replace(path)
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from calibration.archive import ArchiveError
+    from calibration.pipeline import CalibrationError, calibrate_archive
+
+    sweep = Path(args.sweep_dir)
+    if not sweep.exists():
+        raise UserError(f"{sweep}: no such sweep directory")
+    out = Path(args.out) if args.out else None
+    try:
+        result = calibrate_archive(sweep, progress=_progress("calibrate"))
+    except ArchiveError as exc:
+        raise UserError(f"{sweep}: invalid sweep archive: {exc}") from None
+    except CalibrationError as exc:
+        print(f"lfcal calibrate: {exc}", file=sys.stderr)
+        if out is not None and exc.partial is not None:
+            _write_json(out, exc.partial)
+            print(f"partial results written to {out}", file=sys.stderr)
+        return exc.exit_code
+    data = result.to_dict()
+    truth_path = sweep / "truth.json"
+    truth = None
+    if truth_path.is_file():
+        try:
+            truth = json.loads(truth_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            truth = None
+    print(summary_table(data, truth))
+    if out is not None:
+        _write_json(out, data)
+        print(f"result written to {out}")
+    if args.plots:
+        from calibration.report import write_plots
+
+        written = write_plots(data, Path(args.plots))
+        print("plots: " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ config
+
+
+def cmd_config_check(args: argparse.Namespace) -> int:
+    from station.config import config_check_main
+
+    return config_check_main(args.file)
+
+
+def cmd_emulate_stage(args: argparse.Namespace, rest: list[str]) -> int:
+    # the emulator is simulated code: loaded by name so production code never imports it
+    module = importlib.import_module("drivers.sim.emulate_stage_cli")
+    return int(module.main(rest))
+
+
+# -------------------------------------------------------------------------------- demo
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Simulate a sweep of the simulated station and calibrate it."""
+    out = Path(args.out)
+    sweep_dir = out / "sweep"
+    sim_args = argparse.Namespace(
+        out=str(sweep_dir), preset=args.preset, frames=args.frames, start_mm=None, step_mm=None,
+        width=args.width, height=args.height, principal_point=None, seed=args.seed,
+        overwrite=True,
+    )
+    cmd_simulate(sim_args)
+    cal_args = argparse.Namespace(sweep_dir=str(sweep_dir), out=str(out / "result.json"),
+                                  plots=str(out / "plots"))
+    return cmd_calibrate(cal_args)
+
+
+# -------------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lfcal",
+        description="Calibration station for focused plenoptic cameras (ESIF method).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="render a simulated sweep archive (lfcal-sweep/1)")
+    p.add_argument("out", help="output directory (created; must not exist unless --overwrite)")
+    p.add_argument("--preset", default="paper", help="paper | rotated | noisy (default paper)")
+    p.add_argument("--frames", type=int, default=None, help="number of rail positions")
+    p.add_argument("--start-mm", type=float, default=None, help="first rail position (mm)")
+    p.add_argument("--step-mm", type=float, default=None, help="rail step (mm)")
+    p.add_argument("--width", type=int, default=None, help="frame width (px); default 5120")
+    p.add_argument("--height", type=int, default=None, help="frame height (px); default 5120")
+    p.add_argument("--principal-point", default=None, metavar="X,Y",
+                   help="principal point (px); default keeps both corners in view")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing archive")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("calibrate", help="calibrate a sweep archive (ESIF)")
+    p.add_argument("sweep_dir", help="an lfcal-sweep/1 directory")
+    p.add_argument("--out", default=None, help="write the result JSON here")
+    p.add_argument("--plots", default=None, help="write La(u) and Q(u) PNG plots to this directory")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("config", help="station configuration tools")
+    csub = p.add_subparsers(dest="config_command", required=True)
+    c = csub.add_parser("check", help="check a station configuration TOML file")
+    c.add_argument("file")
+    c.set_defaults(func=cmd_config_check)
+
+    p = sub.add_parser("emulate-stage", add_help=False,
+                       help="run a Zaber ASCII stage emulator (pty or TCP on 127.0.0.1)")
+    p.set_defaults(func=cmd_emulate_stage, passthrough=True)
+
+    p = sub.add_parser("demo", help="simulate a sweep of the simulated station and calibrate it")
+    p.add_argument("--config", default="config/simulated.toml", help="station configuration")
+    p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    p.add_argument("--preset", default="paper")
+    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--width", type=int, default=3000)
+    p.add_argument("--height", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if argv and argv[0] == "emulate-stage":
+        return cmd_emulate_stage(argparse.Namespace(), argv[1:])
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except UserError as exc:
+        print(f"lfcal {args.command}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
