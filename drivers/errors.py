@@ -170,9 +170,7 @@ class NotReferenced(MotionError):
 class MoveInterrupted(MotionError):
     """The move was interrupted by a stop or another move before it ended (Zaber NI)."""
 
-    default_hint = (
-        "whether a stop was requested, another program or the manual knob moved the axis"
-    )
+    default_hint = "whether a stop was requested, another program or the manual knob moved the axis"
 
 
 class DeviceFault(MotionError):

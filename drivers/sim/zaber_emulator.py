@@ -414,7 +414,14 @@ class _TcpLink:
 
 # --------------------------------------------------------------------------- emulator
 
-_DEVICE_SETTINGS = ("device.id", "system.serial", "version", "comm.checksum", "comm.alert", "system.axiscount")
+_DEVICE_SETTINGS = (
+    "device.id",
+    "system.serial",
+    "version",
+    "comm.checksum",
+    "comm.alert",
+    "system.axiscount",
+)
 _AXIS_SETTINGS = ("pos", "maxspeed", "accel", "limit.min", "limit.max")
 _READ_ONLY = frozenset({"device.id", "system.serial", "version", "system.axiscount"})
 
@@ -439,6 +446,7 @@ class EmulatorStats:
     dropped: int = 0
     garbled: int = 0
     delayed: int = 0
+    delayed_sent: int = 0
     alerts: int = 0
 
 
@@ -552,6 +560,15 @@ class ZaberEmulator:
             raise RuntimeError("emulator not started")
         return self._link.url
 
+    @property
+    def bound_address(self) -> tuple[str, int] | None:
+        """(host, port) the TCP server listens on; None for a pty."""
+        link = self._link
+        if isinstance(link, _TcpLink):
+            host, port = link.listener.getsockname()[:2]
+            return str(host), int(port)
+        return None
+
     # ------------------------------------------------------------------ inspection (thread-safe)
 
     def snapshot(self, device: int = 1, axis: int = 1) -> AxisSnapshot:
@@ -560,7 +577,14 @@ class ZaberEmulator:
             now = self._now()
             ax = self._axis(device, axis)
             ax.settle(now)
-            return AxisSnapshot(ax.reported(now), ax.phys_at(now), ax.busy(now), frozenset(ax.flags))
+            return AxisSnapshot(
+                ax.reported(now), ax.phys_at(now), ax.busy(now), frozenset(ax.flags)
+            )
+
+    def is_powered(self, device: int) -> bool:
+        """False while ``device`` is off after a power cycle (it answers nothing then)."""
+        with self._lock:
+            return self._device(device).off_until <= time.monotonic()
 
     def setting(self, device: int, axis: int, name: str) -> int:
         """Current value of an axis setting (pos, maxspeed, accel, limit.min, limit.max)."""
@@ -728,7 +752,10 @@ class ZaberEmulator:
     def _feed(self, data: bytes) -> None:
         self._inbuf += data
         while True:
-            cut = min((i for i in (self._inbuf.find(b"\n"), self._inbuf.find(b"\r")) if i >= 0), default=-1)
+            cut = min(
+                (i for i in (self._inbuf.find(b"\n"), self._inbuf.find(b"\r")) if i >= 0),
+                default=-1,
+            )
             if cut < 0:
                 if len(self._inbuf) > 1024:
                     self._inbuf.clear()
@@ -820,7 +847,12 @@ class ZaberEmulator:
                 line = _garble(line, self.stats.garbled)
             else:
                 self.stats.delayed += 1
-                self._schedule(time.monotonic() + fault.delay_s, lambda: self._send(line))
+
+                def send_late(late: bytes = line) -> None:
+                    self.stats.delayed_sent += 1
+                    self._send(late)
+
+                self._schedule(time.monotonic() + fault.delay_s, send_late)
                 return
         self._send(line)
 
@@ -878,17 +910,23 @@ class ZaberEmulator:
         if post is not None:
             post()
 
-    def _cmd_status(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_status(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         return "0"
 
-    def _cmd_home(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_home(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if args:
             return "RJ BADDATA"
         for ax in axes:
             self._start_motion(dev, ax, target_phys=0.0, kind="home", now=now)
         return "0"
 
-    def _cmd_move(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_move(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if not args or args[0] not in ("abs", "rel", "min", "max"):
             return "RJ BADCOMMAND"
         mode, rest = args[0], args[1:]
@@ -916,7 +954,9 @@ class ZaberEmulator:
             self._start_motion(dev, ax, target_phys=target + ax.offset, kind="move", now=now)
         return "0"
 
-    def _cmd_stop(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_stop(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if args:
             return "RJ BADDATA"
         for ax in axes:
@@ -932,7 +972,9 @@ class ZaberEmulator:
             self._schedule_settle(dev, ax, ax.motion)
         return "0"
 
-    def _cmd_estop(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_estop(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if args:
             return "RJ BADDATA"
         for ax in axes:
@@ -941,7 +983,9 @@ class ZaberEmulator:
             ax.halt(now)
         return "0"
 
-    def _cmd_get(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_get(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if len(args) != 1:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
         name = args[0]
@@ -971,7 +1015,9 @@ class ZaberEmulator:
             "limit.max": ax.limit_max,
         }.get(name)
 
-    def _cmd_set(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_set(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if len(args) != 2:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
         name, raw = args
@@ -1009,7 +1055,9 @@ class ZaberEmulator:
                 ax.limit_max = value
         return "0"
 
-    def _cmd_warnings(self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float) -> str:
+    def _cmd_warnings(
+        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+    ) -> str:
         if args not in ([], ["clear"]):
             return "RJ BADDATA"
         flags: set[str] = set()
@@ -1033,7 +1081,13 @@ class ZaberEmulator:
     # ------------------------------------------------------------------ motion
 
     def _start_motion(
-        self, dev: _Device, ax: _Axis, *, target_phys: float, kind: Literal["move", "home"], now: float
+        self,
+        dev: _Device,
+        ax: _Axis,
+        *,
+        target_phys: float,
+        kind: Literal["move", "home"],
+        now: float,
     ) -> None:
         if ax.busy(now):
             ax.flags.add("NI")  # the running motion is interrupted

@@ -78,7 +78,9 @@ class ZaberAxisConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= self.device <= protocol.MAX_DEVICE:
-            raise ValueError(f"{self.name}: device must be 1-{protocol.MAX_DEVICE}, got {self.device}")
+            raise ValueError(
+                f"{self.name}: device must be 1-{protocol.MAX_DEVICE}, got {self.device}"
+            )
         if not 1 <= self.axis <= protocol.MAX_AXIS:
             raise ValueError(f"{self.name}: axis must be 1-{protocol.MAX_AXIS}, got {self.axis}")
         for key in ("microstep_um", "tolerance_um", "timeout_scale"):
@@ -139,7 +141,9 @@ class ZaberAxis:
 
     vendor = "Zaber"
 
-    def __init__(self, port: ZaberPort, config: ZaberAxisConfig, *, owns_port: bool = False) -> None:
+    def __init__(
+        self, port: ZaberPort, config: ZaberAxisConfig, *, owns_port: bool = False
+    ) -> None:
         self._port = port
         self._cfg = config
         self._owns_port = owns_port
@@ -284,12 +288,16 @@ class ZaberAxis:
     def stop(self) -> None:
         """Decelerate to a stop and wait until idle (estop if it does not stop in time)."""
         self._request("stop")
-        timeout = (self._speed / self._accel) * self._cfg.timeout_scale * 2.0 + self._cfg.timeout_margin_s
+        timeout = (
+            self._speed / self._accel
+        ) * self._cfg.timeout_scale * 2.0 + self._cfg.timeout_margin_s
         deadline = time.monotonic() + timeout
         while self._status().busy:
             if time.monotonic() >= deadline:
                 self._request("estop")
-                raise MotionTimeout(f"still moving {timeout:.2f} s after stop; estop sent", device=self.label)
+                raise MotionTimeout(
+                    f"still moving {timeout:.2f} s after stop; estop sent", device=self.label
+                )
             time.sleep(self._cfg.poll_interval_s)
 
     def estop(self) -> None:
@@ -332,11 +340,17 @@ class ZaberAxis:
         status = self._status()
         if status.warning == "WR" or self._needs_home:
             self._needs_home = self._needs_home or status.warning == "WR"
-            raise NotReferenced(f"refusing to move to {target_mm} mm: axis not homed", device=self.label)
+            raise NotReferenced(
+                f"refusing to move to {target_mm} mm: axis not homed", device=self.label
+            )
         if status.warning != "--":
-            self._raise_for_flags(self.warnings(), f"before moving to {target_mm} mm", ignore={"NI"})
+            self._raise_for_flags(
+                self.warnings(), f"before moving to {target_mm} mm", ignore={"NI"}
+            )
         if status.busy:
-            raise DeviceBusy(f"cannot move to {target_mm} mm: axis already moving", device=self.label)
+            raise DeviceBusy(
+                f"cannot move to {target_mm} mm: axis already moving", device=self.label
+            )
         start = status.data_int()
         reply = self._request(f"move abs {target}")
         if reply.warning == "WR":  # power lost between the check and the move
@@ -397,7 +411,9 @@ class ZaberAxis:
         if reply.rejected:
             error = protocol.rejection_error(reply, command=text, device=self.label)
             if error.reason in ("BADAXIS", "DEVICEONLY"):
-                error.hint = f"the device ({cfg.device}) and axis ({cfg.axis}) numbers in the configuration"
+                error.hint = (
+                    f"the device ({cfg.device}) and axis ({cfg.axis}) numbers in the configuration"
+                )
             raise error
         return reply
 

@@ -169,7 +169,9 @@ class ZaberPort:
             hint = "is the server (e.g. 'lfcal emulate-stage --tcp PORT') running on that port?"
         else:
             hint = None
-        return PortUnavailable(f"cannot open port {self._url}: {text}", device=self._name, hint=hint)
+        return PortUnavailable(
+            f"cannot open port {self._url}: {text}", device=self._name, hint=hint
+        )
 
     def close(self) -> None:
         """Close the port (idempotent)."""
@@ -251,9 +253,7 @@ class ZaberPort:
         From then on replies from ``device`` without a valid checksum are rejected.
         """
         label = label or f"{self._name} device {device}"
-        reply = self.request(
-            device, 0, "set comm.checksum 1", label=label, require_checksum=False
-        )
+        reply = self.request(device, 0, "set comm.checksum 1", label=label, require_checksum=False)
         if reply.rejected:
             raise protocol.rejection_error(reply, command="set comm.checksum 1", device=label)
         with self._lock:
@@ -339,7 +339,9 @@ class ZaberPort:
 
     def _port(self, label: str) -> Any:
         if self._serial is None:
-            raise PortUnavailable(f"port {self._url} is not open", device=label, hint="call open() first")
+            raise PortUnavailable(
+                f"port {self._url} is not open", device=label, hint="call open() first"
+            )
         return self._serial
 
     def _lost(self, exc: BaseException, label: str) -> ConnectionLost:

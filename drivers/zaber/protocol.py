@@ -192,9 +192,9 @@ def format_command(
         raise ValueError(f"axis number {axis} outside 0-{MAX_AXIS}")
     if message_id is not None and not 0 <= message_id <= MAX_MESSAGE_ID:
         raise ValueError(f"message id {message_id} outside 0-{MAX_MESSAGE_ID}")
-    text = " ".join(text.split())
     if any(not 32 <= ord(c) <= 126 for c in text) or ":" in text or "/" in text:
         raise ValueError(f"command text {text!r} has characters the protocol cannot carry")
+    text = " ".join(text.split())
     parts = [f"{COMMAND_START}{device}", str(axis)]
     if message_id is not None:
         parts.append(str(message_id))
@@ -458,7 +458,9 @@ def parse_warnings_data(data: str) -> frozenset[str]:
 
 def describe_flags(flags: Iterable[str]) -> str:
     """``"FS (stalled and stopped), WR (no reference position)"``, by precedence."""
-    ordered = sorted(set(flags), key=lambda f: WARNING_PRIORITY.index(f) if f in WARNING_FLAGS else 99)
+    ordered = sorted(
+        set(flags), key=lambda f: WARNING_PRIORITY.index(f) if f in WARNING_FLAGS else 99
+    )
     return ", ".join(f"{f} ({WARNING_FLAGS.get(f, 'unknown flag')})" for f in ordered)
 
 

@@ -35,10 +35,14 @@ class XYStage:
         port: a port this stage owns and closes in :meth:`close`.
     """
 
-    def __init__(self, x: ZaberAxis, y: ZaberAxis, *, name: str = "xy stage", port: ZaberPort | None = None) -> None:
+    def __init__(
+        self, x: ZaberAxis, y: ZaberAxis, *, name: str = "xy stage", port: ZaberPort | None = None
+    ) -> None:
         cx, cy = x.config, y.config
         if x.port is y.port and (cx.device, cx.axis) == (cy.device, cy.axis):
-            raise ValueError(f"{name}: x and y are the same axis (device {cx.device} axis {cx.axis})")
+            raise ValueError(
+                f"{name}: x and y are the same axis (device {cx.device} axis {cx.axis})"
+            )
         self._x, self._y = x, y
         self._name = name
         self._port = port
@@ -91,7 +95,9 @@ class XYStage:
             raise
         self._finish_both(first, second)
 
-    def move_xy_mm(self, x_mm: float, y_mm: float, timeout_s: float | None = None) -> tuple[float, float]:
+    def move_xy_mm(
+        self, x_mm: float, y_mm: float, timeout_s: float | None = None
+    ) -> tuple[float, float]:
         """Move both axes at once to (``x_mm``, ``y_mm``); return the read-back position (mm).
 
         Both targets are checked before anything moves.  If one axis fails,
