@@ -84,7 +84,9 @@ def _aravis() -> types.SimpleNamespace:
             gi.require_version("Aravis", "0.8")
             from gi.repository import Aravis, Gio, GLib
         except (ImportError, ValueError) as exc:
-            raise BackendUnavailable(f"Aravis 0.8 cannot be imported through PyGObject: {exc}") from exc
+            raise BackendUnavailable(
+                f"Aravis 0.8 cannot be imported through PyGObject: {exc}"
+            ) from exc
         _GI = types.SimpleNamespace(Aravis=Aravis, Gio=Gio, GLib=GLib)
     return _GI
 
@@ -177,7 +179,9 @@ class _AravisNodes:
                 return float(self._dev.get_float_feature_value(name))
             if kind == "int":
                 return int(self._dev.get_integer_feature_value(name))
-        raise FeatureMissing(f"{name} cannot be read as a value", feature=name, device=self._owner.label)
+        raise FeatureMissing(
+            f"{name} cannot be read as a value", feature=name, device=self._owner.label
+        )
 
     def set(self, name: str, value: int | float | str | bool) -> None:
         kind = self._kind(name)
@@ -191,7 +195,9 @@ class _AravisNodes:
             elif kind == "int":
                 self._dev.set_integer_feature_value(name, int(value))
             else:
-                raise FeatureMissing(f"{name} cannot be set", feature=name, device=self._owner.label)
+                raise FeatureMissing(
+                    f"{name} cannot be set", feature=name, device=self._owner.label
+                )
 
     def execute(self, name: str) -> None:
         with self._owner._gerrors(name):
@@ -485,7 +491,9 @@ class AravisCamera:
             self._setup_transport(ar)
             self._sfnc = SfncCamera(_AravisNodes(self), self.label)
             if self.address and self.serial:
-                found = self._sfnc._string("DeviceSerialNumber") or self._sfnc._string("DeviceID")
+                found = self._sfnc.read_string("DeviceSerialNumber") or self._sfnc.read_string(
+                    "DeviceID"
+                )
                 if found != self.serial:
                     raise CameraNotFound(
                         f"the camera at {self._ip} has serial {found!r}, not {self.serial!r}",
@@ -591,7 +599,9 @@ class AravisCamera:
             with self._gerrors("stream"):
                 self._stream = self._camera.create_stream(None, None)
                 if isinstance(self._stream, ar.GvStream):
-                    self._stream.set_property("frame-retention", int(self.frame_retention_ms * 1000))
+                    self._stream.set_property(
+                        "frame-retention", int(self.frame_retention_ms * 1000)
+                    )
                     self._stream.set_property(
                         "packet-resend",
                         ar.GvStreamPacketResend.ALWAYS

@@ -28,7 +28,13 @@ import numpy as np
 from drivers.camera_errors import FeatureMissing, IncompleteFrame, InvalidSetting
 
 #: Pixel formats the drivers decode, with their significant bits (PFNC names).
-MONO_BIT_DEPTH: dict[str, int] = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono14": 14, "Mono16": 16}
+MONO_BIT_DEPTH: dict[str, int] = {
+    "Mono8": 8,
+    "Mono10": 10,
+    "Mono12": 12,
+    "Mono14": 14,
+    "Mono16": 16,
+}
 
 #: PFNC codes of the supported formats (as found in GVSP leaders / GenTL buffer info).
 PFNC_CODES: dict[str, int] = {
@@ -249,7 +255,9 @@ class SfncCamera:
 
     nodes: NodeMap
     device: str
-    _feature_hint: str = field(default="the camera's feature list (arv-tool-0.8 -a ADDRESS features)")
+    feature_hint: str = field(
+        default="the camera's feature list (arv-tool-0.8 -a ADDRESS features)"
+    )
 
     # -- checks -----------------------------------------------------------------------
 
@@ -264,7 +272,7 @@ class SfncCamera:
                 f"the camera does not offer the GenICam feature {name!r}",
                 feature=name,
                 device=self.device,
-                hint=self._feature_hint,
+                hint=self.feature_hint,
             )
         if writable and not self.nodes.is_writable(name):
             raise FeatureMissing(
@@ -321,7 +329,8 @@ class SfncCamera:
 
     # -- identity and limits ------------------------------------------------------------
 
-    def _string(self, name: str, default: str = "") -> str:
+    def read_string(self, name: str, default: str = "") -> str:
+        """A string feature, or ``default`` if the camera does not offer it."""
         return str(self.nodes.get(name)) if self.has(name) else default
 
     def sensor_size(self) -> tuple[int, int]:
@@ -346,7 +355,7 @@ class SfncCamera:
                 "the camera offers no exposure control (ExposureTime)",
                 feature="ExposureTime",
                 device=self.device,
-                hint=self._feature_hint,
+                hint=self.feature_hint,
             )
         lo, hi = self.nodes.bounds(name)
         return float(lo), float(hi)
@@ -363,9 +372,9 @@ class SfncCamera:
         self.require("PixelFormat")
         name = self.exposure_feature()
         return CameraInfo(
-            vendor=self._string("DeviceVendorName"),
-            model=self._string("DeviceModelName"),
-            serial=self._string("DeviceSerialNumber") or self._string("DeviceID"),
+            vendor=self.read_string("DeviceVendorName"),
+            model=self.read_string("DeviceModelName"),
+            serial=self.read_string("DeviceSerialNumber") or self.read_string("DeviceID"),
             pixel_formats=self.nodes.enum_entries("PixelFormat"),
             sensor_width=self.sensor_size()[0],
             sensor_height=self.sensor_size()[1],
@@ -467,7 +476,11 @@ class SfncCamera:
             self.check_number("Gain", settings.gain)
 
     def _auto_off(self, name: str) -> None:
-        if self.has(name) and self.nodes.is_writable(name) and "Off" in self.nodes.enum_entries(name):
+        if (
+            self.has(name)
+            and self.nodes.is_writable(name)
+            and "Off" in self.nodes.enum_entries(name)
+        ):
             self.set_enum(name, "Off")
 
     def apply(self, settings: CameraSettings) -> CameraSettings:
