@@ -283,6 +283,13 @@ class HarvestersCamera:
             self._requested = settings
             return self._applied
 
+    def read_feature(self, name: str) -> int | float | str | bool:
+        """Current value of any GenICam feature (diagnostics); ``FeatureMissing`` if absent."""
+        with self._lock:
+            sfnc = self._session()
+            sfnc.require(name)
+            return sfnc.nodes.get(name)
+
     def settings(self) -> CameraSettings:
         """The settings in force (as read back after the last configure/open)."""
         with self._lock:
