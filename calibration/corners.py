@@ -327,6 +327,7 @@ def measure_corners(
     all_profiles: list[NDArray[np.float32]] = []
     hp = opts.profile_half_px
     win = int(round(interior_radius_px))
+    n_rows = 0
     for owner, (i, j, xs, ys) in enumerate(starts):
         m = CornerMeasurement(lens_i=int(i), lens_j=int(j))
         results.append(m)
@@ -347,8 +348,8 @@ def measure_corners(
             continue
         blocks, profiles = _collect_blocks(img, owner, x0, y0, (cxf, cyf), interior_radius_px, opts)
         for b, p in zip(blocks, profiles, strict=True):
-            start = sum(len(q) for q in all_profiles)
-            b.rows = slice(start, start + len(p))
+            b.rows = slice(n_rows, n_rows + len(p))
+            n_rows += len(p)
             all_blocks.append(b)
             all_profiles.append(p)
     if not all_profiles:

@@ -207,6 +207,29 @@ def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _group_by_board_corner(
+    meas: list[CornerMeasurement], ctx: FrameContext, object_distance_mm: float
+) -> dict[tuple[int, int], list[CornerMeasurement]]:
+    """Which board corner (in squares) each measured micro-image shows."""
+    q0 = _rough_q(meas, ctx)
+    groups: dict[tuple[int, int], list[CornerMeasurement]] = {}
+    if not (np.isfinite(q0) and q0 > 0):
+        return groups
+    v = float(image_distance(object_distance_mm, ctx.main_focal_mm))
+    mm_per_px = ctx.pixel_pitch_mm * object_distance_mm / v
+    cx, cy = ctx.principal_point_px
+    s = ctx.board.square_mm
+    for m in meas:
+        if not m.ok:
+            continue
+        mx, my = ctx.lens_grid.centre(m.lens_i, m.lens_j)
+        rx = ((1 + q0) * float(mx) - m.x) / q0
+        ry = ((1 + q0) * float(my) - m.y) / q0
+        bx, by = -(rx - cx) * mm_per_px, -(ry - cy) * mm_per_px
+        groups.setdefault((int(round(bx / s)), int(round(by / s))), []).append(m)
+    return groups
+
+
 def analyze_frame(
     frame: NDArray[np.integer] | NDArray[np.floating],
     ctx: FrameContext,
@@ -220,10 +243,17 @@ def analyze_frame(
     """
     mim = micro_image_map or MicroImageMap(ctx.image_grid, frame.shape, ctx.interior_radius_px)
     junctions = find_junctions(frame, mim, sigma_px=ctx.options.saddle_sigma_px)
-    starts = [
-        (int(i), int(j), float(x), float(y))
+    # identify the board corner of every saddle first, then measure only the two we need
+    rough = [
+        CornerMeasurement(lens_i=int(i), lens_j=int(j), x=float(x), y=float(y), ok=True)
         for i, j, x, y in zip(junctions.i, junctions.j, junctions.x, junctions.y, strict=True)
     ]
+    wanted = {
+        k: v
+        for k, v in _group_by_board_corner(rough, ctx, object_distance_mm).items()
+        if k in ((0, 0), (2, 0))
+    }
+    starts = [(m.lens_i, m.lens_j, m.x, m.y) for members in wanted.values() for m in members]
     meas = measure_corners(
         frame,
         starts,
@@ -235,22 +265,7 @@ def analyze_frame(
     for m in meas:
         if not m.ok:
             rejected[m.reason] = rejected.get(m.reason, 0) + 1
-    q0 = _rough_q(meas, ctx)
-    groups: dict[tuple[int, int], list[CornerMeasurement]] = {}
-    if np.isfinite(q0) and q0 > 0:
-        v = float(image_distance(object_distance_mm, ctx.main_focal_mm))
-        mm_per_px = ctx.pixel_pitch_mm * object_distance_mm / v
-        cx, cy = ctx.principal_point_px
-        s = ctx.board.square_mm
-        for m in meas:
-            if not m.ok:
-                continue
-            mx, my = ctx.lens_grid.centre(m.lens_i, m.lens_j)
-            rx = ((1 + q0) * float(mx) - m.x) / q0
-            ry = ((1 + q0) * float(my) - m.y) / q0
-            bx, by = -(rx - cx) * mm_per_px, -(ry - cy) * mm_per_px
-            key = (int(round(bx / s)), int(round(by / s)))
-            groups.setdefault(key, []).append(m)
+    groups = _group_by_board_corner(meas, ctx, object_distance_mm)
     result = FrameResult(object_distance_mm, None, None, rejected)
     for name, key in (("standard", (0, 0)), ("reference", (2, 0))):
         members = groups.get(key, [])

@@ -45,8 +45,9 @@ def _progress(label: str) -> Any:
         filled = int(width * done / max(total, 1))
         bar = "#" * filled + "-" * (width - filled)
         end = "\n" if done == total or not sys.stderr.isatty() else "\r"
-        print(f"{label} [{bar}] {done}/{total} {elapsed:6.1f} s", end=end, file=sys.stderr,
-              flush=True)
+        print(
+            f"{label} [{bar}] {done}/{total} {elapsed:6.1f} s", end=end, file=sys.stderr, flush=True
+        )
 
     return report
 
@@ -97,16 +98,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UserError(f"{out} already exists and is not empty (use --overwrite)")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        path = write_sweep(out, preset, seed=args.seed, overwrite=args.overwrite,
-                           progress=_progress("simulate"))
+        path = write_sweep(
+            out, preset, seed=args.seed, overwrite=args.overwrite, progress=_progress("simulate")
+        )
     except PermissionError as exc:
         raise UserError(f"cannot write {out}: permission denied ({exc.filename})") from None
     except OSError as exc:
         raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
     cam = preset.camera
-    print(f"wrote {path}: preset {preset.name}, {preset.sweep.frames} frames of "
-          f"{cam.sensor.width}x{cam.sensor.height} px, principal point "
-          f"({cam.sensor.pp[0]:.1f}, {cam.sensor.pp[1]:.1f}), truth in {path / 'truth.json'}")
+    print(
+        f"wrote {path}: preset {preset.name}, {preset.sweep.frames} frames of "
+        f"{cam.sensor.width}x{cam.sensor.height} px, principal point "
+        f"({cam.sensor.pp[0]:.1f}, {cam.sensor.pp[1]:.1f}), truth in {path / 'truth.json'}"
+    )
     return EXIT_OK
 
 
@@ -130,12 +134,24 @@ def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -
         ("a (mm)", _fmt(result.get("a_mm")), _fmt(unc.get("a_mm")), "a_mm"),
         ("b (mm)", _fmt(result.get("b_mm")), _fmt(unc.get("b_mm")), "b_mm"),
         ("Q = b/a", _fmt(result.get("Q"), 6), _fmt(unc.get("Q"), 6), "Q"),
-        ("patch size p (px)", _fmt(result.get("patch_size_px")),
-         _fmt(unc.get("patch_size_px")), "patch_size_px"),
-        ("focus plane u (mm)", _fmt(focus.get("object_distance_mm"), 2),
-         _fmt(focus.get("uncertainty_mm"), 2), "focus.object_distance_mm"),
-        ("focus rail position (mm)", _fmt(focus.get("rail_mm"), 2),
-         _fmt(focus.get("uncertainty_mm"), 2), "focus.rail_mm"),
+        (
+            "patch size p (px)",
+            _fmt(result.get("patch_size_px")),
+            _fmt(unc.get("patch_size_px")),
+            "patch_size_px",
+        ),
+        (
+            "focus plane u (mm)",
+            _fmt(focus.get("object_distance_mm"), 2),
+            _fmt(focus.get("uncertainty_mm"), 2),
+            "focus.object_distance_mm",
+        ),
+        (
+            "focus rail position (mm)",
+            _fmt(focus.get("rail_mm"), 2),
+            _fmt(focus.get("uncertainty_mm"), 2),
+            "focus.rail_mm",
+        ),
         ("lens pitch (px)", _fmt(mla.get("lens_pitch_px")), "", "mla.lens_pitch_px"),
         ("micro-image pitch (px)", _fmt(mla.get("image_pitch_px")), "", "mla.image_pitch_px"),
         ("MLA rotation (deg)", _fmt(mla.get("rotation_deg")), "", "mla.rotation_deg"),
@@ -145,7 +161,9 @@ def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -
     if truth:
         header += ["truth", "error"]
         truth_vals = {
-            "a_mm": truth.get("a_mm"), "b_mm": truth.get("b_mm"), "Q": truth.get("Q"),
+            "a_mm": truth.get("a_mm"),
+            "b_mm": truth.get("b_mm"),
+            "Q": truth.get("Q"),
             "patch_size_px": truth.get("patch_size_px"),
             "focus.object_distance_mm": truth.get("focus", {}).get("object_distance_mm"),
             "focus.rail_mm": truth.get("focus", {}).get("rail_mm"),
@@ -261,13 +279,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     sweep_dir = out / "sweep"
     sim_args = argparse.Namespace(
-        out=str(sweep_dir), preset=args.preset, frames=args.frames, start_mm=None, step_mm=None,
-        width=args.width, height=args.height, principal_point=None, seed=args.seed,
+        out=str(sweep_dir),
+        preset=args.preset,
+        frames=args.frames,
+        start_mm=None,
+        step_mm=None,
+        width=args.width,
+        height=args.height,
+        principal_point=None,
+        seed=args.seed,
         overwrite=True,
     )
     cmd_simulate(sim_args)
-    cal_args = argparse.Namespace(sweep_dir=str(sweep_dir), out=str(out / "result.json"),
-                                  plots=str(out / "plots"))
+    cal_args = argparse.Namespace(
+        sweep_dir=str(sweep_dir), out=str(out / "result.json"), plots=str(out / "plots")
+    )
     return cmd_calibrate(cal_args)
 
 
@@ -289,8 +315,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step-mm", type=float, default=None, help="rail step (mm)")
     p.add_argument("--width", type=int, default=None, help="frame width (px); default 5120")
     p.add_argument("--height", type=int, default=None, help="frame height (px); default 5120")
-    p.add_argument("--principal-point", default=None, metavar="X,Y",
-                   help="principal point (px); default keeps both corners in view")
+    p.add_argument(
+        "--principal-point",
+        default=None,
+        metavar="X,Y",
+        help="principal point (px); default keeps both corners in view",
+    )
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing archive")
     p.set_defaults(func=cmd_simulate)
@@ -307,8 +337,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("file")
     c.set_defaults(func=cmd_config_check)
 
-    p = sub.add_parser("emulate-stage", add_help=False,
-                       help="run a Zaber ASCII stage emulator (pty or TCP on 127.0.0.1)")
+    p = sub.add_parser(
+        "emulate-stage",
+        add_help=False,
+        help="run a Zaber ASCII stage emulator (pty or TCP on 127.0.0.1)",
+    )
     p.set_defaults(func=cmd_emulate_stage, passthrough=True)
 
     p = sub.add_parser("demo", help="simulate a sweep of the simulated station and calibrate it")

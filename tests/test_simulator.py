@@ -140,10 +140,16 @@ def test_corner_blur_grows_on_both_sides_of_focus(cam: SimCamera) -> None:
 def test_vignetting_darkens_the_border() -> None:
     big = SimCamera(paper_optics(), SensorModel(width=5120, height=5120))
     cx, cy = big.sensor.pp
-    centre = render_frame(big, object_distance_mm=300.0, white=True, noise=False,
-                          roi=Roi(int(cx) - 150, int(cy) - 150, 300, 300))
-    corner = render_frame(big, object_distance_mm=300.0, white=True, noise=False,
-                          roi=Roi(0, 0, 300, 300))
+    centre = render_frame(
+        big,
+        object_distance_mm=300.0,
+        white=True,
+        noise=False,
+        roi=Roi(int(cx) - 150, int(cy) - 150, 300, 300),
+    )
+    corner = render_frame(
+        big, object_distance_mm=300.0, white=True, noise=False, roi=Roi(0, 0, 300, 300)
+    )
     assert np.percentile(corner, 95) < 0.98 * np.percentile(centre, 95)
 
 
