@@ -120,7 +120,8 @@ def test_soft_limits_and_speed_settings(emu: ZaberEmulator) -> None:
         axis.close()
 
 
-def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator, rail: ZaberAxis) -> None:
+def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator) -> None:
+    rail = open_rail(emu.url, cfg(speed_mm_s=5.0))  # 99 mm take 0.4 s at speedup 50
     rail.home()
     outcome: list[BaseException] = []
 
@@ -140,9 +141,11 @@ def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator, rail: 
     assert 5.0 < stopped_at < 99.0
     assert stopped_at == pytest.approx(emu.snapshot().position * 1e-4)
     assert rail.move_abs_mm(20.0) == pytest.approx(20.0)
+    rail.close()
 
 
-def test_estop_halts_at_once(emu: ZaberEmulator, rail: ZaberAxis) -> None:
+def test_estop_halts_at_once(emu: ZaberEmulator) -> None:
+    rail = open_rail(emu.url, cfg(speed_mm_s=5.0))
     rail.home()
     pending = rail.start_move_abs_mm(90.0)
     wait_for(lambda: emu.snapshot().position > 50000)
@@ -150,6 +153,7 @@ def test_estop_halts_at_once(emu: ZaberEmulator, rail: ZaberAxis) -> None:
     assert not emu.snapshot().busy
     with pytest.raises(errors.MoveInterrupted):
         rail.finish(pending)
+    rail.close()
 
 
 def test_alerts_on_the_line_are_ignored(emu: ZaberEmulator, rail: ZaberAxis) -> None:
@@ -212,13 +216,12 @@ def test_axis_must_be_connected() -> None:
 
 def _xy_configs(topology: str) -> tuple[list[DeviceSpec], ZaberAxisConfig, ZaberAxisConfig]:
     spec = AxisSpec(microstep_um=0.1, travel_mm=50.0)
+    # slow enough (5 mm/s, i.e. 0.1 mm/ms at speedup 50) to see both axes move at once
+    x, y = cfg("stage x", 1, 1, speed_mm_s=5.0), cfg("stage y", 1, 2, speed_mm_s=5.0)
     if topology == "one device, two axes":
-        return [DeviceSpec(1, (spec, spec))], cfg("stage x", 1, 1), cfg("stage y", 1, 2)
-    return (
-        [DeviceSpec(1, (spec,)), DeviceSpec(2, (spec,), serial=2)],
-        cfg("stage x", 1, 1),
-        cfg("stage y", 2, 1),
-    )
+        return [DeviceSpec(1, (spec, spec))], x, y
+    y = cfg("stage y", 2, 1, speed_mm_s=5.0)
+    return [DeviceSpec(1, (spec,)), DeviceSpec(2, (spec,), serial=2)], x, y
 
 
 @pytest.mark.parametrize("topology", ["one device, two axes", "two devices, one chain"])

@@ -158,12 +158,14 @@ def test_home_clears_wr_and_busy_lasts_as_long_as_the_move(emu: ZaberEmulator, l
     assert line.ask("/1 1 move abs 500000\n") == "@01 1 OK BUSY -- 0"
     wait_for(lambda: not protocol.parse_message(line.ask("/1 1 get pos\n")).busy)  # type: ignore[union-attr]
     elapsed = time.monotonic() - start
-    assert expected_s * 0.8 <= elapsed <= expected_s + 0.05
+    assert expected_s * 0.8 <= elapsed <= expected_s + 0.25  # upper bound: polling under load
     assert line.ask("/1 1 get pos\n") == "@01 1 OK IDLE -- 500000"
 
 
 def test_stop_decelerates_and_sets_ni(emu: ZaberEmulator, line: Line) -> None:
     line.ask("/1 1 set pos 0\n")  # reference without homing
+    line.ask("/1 1 set maxspeed 81920\n")  # 5 mm/s (50000 usteps/s x 1.6384)
+    line.ask("/1 1 set accel 33\n")  # 20 mm/s^2: the stop lasts 0.25 s / speedup
     line.ask("/1 1 move abs 900000\n")
     wait_for(lambda: emu.snapshot(1, 1).position > 100000)
     assert line.ask("/1 1 stop\n").startswith("@01 1 OK BUSY NI")

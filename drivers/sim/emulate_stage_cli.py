@@ -16,9 +16,9 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
-from typing import TextIO
+from typing import Any, TextIO
 
-from drivers.sim.zaber_emulator import AxisSpec, DeviceSpec, ZaberEmulator
+from drivers.sim.zaber_emulator import AxisSpec, DeviceSpec, Transport, ZaberEmulator
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,9 +81,9 @@ def main(
         DeviceSpec(address=n, axes=(axis,) * args.axes, serial=100000 + n)
         for n in range(1, args.devices + 1)
     ]
-    transport = "tcp" if args.tcp is not None else "pty"
+    transport: Transport = "tcp" if args.tcp is not None else "pty"
     stop = stop or threading.Event()
-    restore: list[tuple[int, object]] = []
+    restore: list[tuple[signal.Signals, Any]] = []
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             restore.append((sig, signal.signal(sig, lambda *_: stop.set())))
@@ -109,7 +109,7 @@ def main(
         return 1
     finally:
         for sig, handler in restore:
-            signal.signal(sig, handler)  # type: ignore[arg-type]
+            signal.signal(sig, handler)
     return 0
 
 

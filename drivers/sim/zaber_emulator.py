@@ -286,6 +286,7 @@ class _ReplyFault:
     remaining: int | None  # None = forever
     device: int | None
     delay_s: float = 0.0
+    command: str | None = None  # only replies to commands starting with this
 
 
 # --------------------------------------------------------------------------- links
@@ -499,6 +500,7 @@ class ZaberEmulator:
         self._seq = itertools.count()
         self._reply_faults: list[_ReplyFault] = []
         self._inbuf = bytearray()
+        self._command_text = ""  # text of the command being answered (for reply faults)
         self._link: _PtyLink | _TcpLink | None = None
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
@@ -576,7 +578,7 @@ class ZaberEmulator:
         with self._lock:
             now = self._now()
             ax = self._axis(device, axis)
-            ax.settle(now)
+            self._settle(self._device(device), ax, now)
             return AxisSnapshot(
                 ax.reported(now), ax.phys_at(now), ax.busy(now), frozenset(ax.flags)
             )
@@ -596,19 +598,32 @@ class ZaberEmulator:
 
     # ------------------------------------------------------------------ fault injection
 
-    def drop_replies(self, count: int | None = 1, *, device: int | None = None) -> None:
-        """Execute the next ``count`` commands but send no reply (None = all)."""
-        self._add_reply_fault(_ReplyFault("drop", count, device))
+    def drop_replies(
+        self, count: int | None = 1, *, device: int | None = None, command: str | None = None
+    ) -> None:
+        """Execute the next ``count`` commands but send no reply (None = all).
 
-    def garble_replies(self, count: int | None = 1, *, device: int | None = None) -> None:
+        ``device`` / ``command`` restrict the fault to one device / to commands
+        starting with ``command`` (e.g. ``"move abs"``), for this and the methods below.
+        """
+        self._add_reply_fault(_ReplyFault("drop", count, device, command=command))
+
+    def garble_replies(
+        self, count: int | None = 1, *, device: int | None = None, command: str | None = None
+    ) -> None:
         """Corrupt one byte in each of the next ``count`` replies (None = all)."""
-        self._add_reply_fault(_ReplyFault("garble", count, device))
+        self._add_reply_fault(_ReplyFault("garble", count, device, command=command))
 
     def delay_replies(
-        self, delay_s: float, count: int | None = 1, *, device: int | None = None
+        self,
+        delay_s: float,
+        count: int | None = 1,
+        *,
+        device: int | None = None,
+        command: str | None = None,
     ) -> None:
         """Send each of the next ``count`` replies ``delay_s`` real seconds late."""
-        self._add_reply_fault(_ReplyFault("delay", count, device, delay_s))
+        self._add_reply_fault(_ReplyFault("delay", count, device, delay_s, command))
 
     def clear_faults(self) -> None:
         """Remove pending reply faults and pending move faults; revive dead devices."""
@@ -775,6 +790,7 @@ class ZaberEmulator:
             return  # unsupported characters: a device discards the incomplete command
         self.received.append(text[text.find("/") :])
         self.stats.commands += 1
+        self._command_text = ""
         try:
             command, _ = protocol.parse_command(text)
         except ChecksumError:
@@ -807,11 +823,13 @@ class ZaberEmulator:
         *,
         rejected: bool = False,
         data: str = "0",
+        now: float | None = None,
     ) -> None:
-        now = self._now()
+        # one timestamp per command: status, flags and data must describe the same instant
+        now = self._now() if now is None else now
         axes = dev.axes if axis == 0 else [dev.axes[axis - 1]] if axis <= len(dev.axes) else []
         for ax in axes:
-            ax.settle(now)
+            self._settle(dev, ax, now)
         flags: set[str] = set()
         for ax in axes:
             flags |= ax.flags
@@ -831,7 +849,12 @@ class ZaberEmulator:
     def _deliver(self, dev: _Device, line: bytes) -> None:
         self.stats.replies += 1
         fault = next(
-            (f for f in self._reply_faults if f.device in (None, dev.address)),
+            (
+                f
+                for f in self._reply_faults
+                if f.device in (None, dev.address)
+                and (f.command is None or self._command_text.startswith(f.command))
+            ),
             None,
         )
         if fault is not None:
@@ -856,6 +879,11 @@ class ZaberEmulator:
                 return
         self._send(line)
 
+    def _settle(self, dev: _Device, ax: _Axis, now: float) -> None:
+        """Finish ``ax``'s motion if its time is over, with the alert it triggers."""
+        if ax.settle(now):
+            self._alert(dev, ax)
+
     def _alert(self, dev: _Device, ax: _Axis) -> None:
         if dev.alert and not dev.dead and dev.off_until <= time.monotonic():
             self.stats.alerts += 1
@@ -873,6 +901,7 @@ class ZaberEmulator:
     # ------------------------------------------------------------------ commands
 
     def _execute(self, dev: _Device, cmd: protocol.Command) -> None:
+        self._command_text = cmd.text
         mid = cmd.message_id
         if cmd.axis > len(dev.axes):
             self._reply(dev, cmd.axis, mid, rejected=True, data="BADAXIS")
@@ -883,8 +912,7 @@ class ZaberEmulator:
         axes = dev.axes if cmd.axis == 0 else [dev.axes[cmd.axis - 1]]
         now = self._now()
         for ax in dev.axes:
-            if ax.settle(now):
-                self._alert(dev, ax)
+            self._settle(dev, ax, now)
         handler = {
             "": self._cmd_status,
             "home": self._cmd_home,
@@ -904,9 +932,9 @@ class ZaberEmulator:
         if isinstance(outcome, tuple):
             outcome, post = outcome
         if outcome.startswith("RJ "):
-            self._reply(dev, cmd.axis, mid, rejected=True, data=outcome[3:])
+            self._reply(dev, cmd.axis, mid, rejected=True, data=outcome[3:], now=now)
         else:
-            self._reply(dev, cmd.axis, mid, data=outcome)
+            self._reply(dev, cmd.axis, mid, data=outcome, now=now)
         if post is not None:
             post()
 
@@ -1130,8 +1158,8 @@ class ZaberEmulator:
 
     def _schedule_settle(self, dev: _Device, ax: _Axis, motion: _Motion) -> None:
         def settle() -> None:
-            if ax.motion is motion and ax.settle(self._now()):
-                self._alert(dev, ax)
+            if ax.motion is motion:
+                self._settle(dev, ax, self._now())
 
         self._schedule(self._real_time(motion.profile.end_time) + 1e-4, settle)
 

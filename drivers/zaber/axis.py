@@ -371,7 +371,11 @@ class ZaberAxis:
             return self.position_mm()
         assert pending.target_usteps is not None
         target_mm = self.usteps_to_mm(pending.target_usteps)
-        final = self._wait(pending.deadline, context=f"moving to {target_mm:.4f} mm", ignore=ignore)
+        self._wait(pending.deadline, context=f"moving to {target_mm:.4f} mm", ignore=ignore)
+        # read back with a fresh query once idle (not the data of the poll that saw IDLE)
+        final = self._status()
+        if final.busy:
+            raise DeviceBusy("axis moving again right after the move ended", device=self.label)
         actual = final.data_int()
         actual_mm = self.usteps_to_mm(actual)
         tolerance_mm = self._cfg.tolerance_um / 1000.0

@@ -17,13 +17,22 @@ Typical use (units: mm)::
     )
     xy.home()
     xy.move_xy_mm(10.0, 5.0)
+
+XY stage daisy-chained behind the rail (one cable, one port shared)::
+
+    port = ZaberPort("/dev/ttyUSB0").open()
+    rail = open_rail(port, ZaberAxisConfig(name="rail", device=1, microstep_um=0.047625))
+    xy = open_xy_stage(port, ZaberAxisConfig(name="x", device=2, axis=1, ...),
+                       ZaberAxisConfig(name="y", device=2, axis=2, ...))
+    ...
+    port.close()
 """
 
 from __future__ import annotations
 
 from drivers.errors import DeviceError
 from drivers.zaber.axis import PendingMotion, ZaberAxis, ZaberAxisConfig
-from drivers.zaber.port import ZaberPort
+from drivers.zaber.port import BAUDRATE, ZaberPort
 
 
 class XYStage:
@@ -165,39 +174,65 @@ class XYStage:
             pass
 
 
+def _port_for(
+    where: str | ZaberPort, name: str, reply_timeout_s: float, retries: int, baudrate: int
+) -> tuple[ZaberPort, bool]:
+    """(open port, owned) for a URL (a new port, owned) or a shared ZaberPort (not owned)."""
+    if isinstance(where, ZaberPort):
+        return where.open(), False
+    port = ZaberPort(
+        where, name=name, reply_timeout_s=reply_timeout_s, retries=retries, baudrate=baudrate
+    )
+    return port.open(), True
+
+
 def open_rail(
-    url: str,
+    where: str | ZaberPort,
     config: ZaberAxisConfig,
     *,
     reply_timeout_s: float = 0.5,
     retries: int = 2,
+    baudrate: int = BAUDRATE,
 ) -> ZaberAxis:
-    """Open ``url`` and connect the rail axis described by ``config``; the axis owns the port."""
-    port = ZaberPort(url, name=config.name, reply_timeout_s=reply_timeout_s, retries=retries)
-    port.open()
+    """Connect the rail axis described by ``config``.
+
+    ``where`` is a pyserial URL (a port is opened and owned by the axis) or a
+    shared :class:`ZaberPort` (e.g. the XY stage on the same chain; the caller
+    closes it).
+    """
+    port, owned = _port_for(where, config.name, reply_timeout_s, retries, baudrate)
     try:
-        return ZaberAxis(port, config, owns_port=True).connect()
+        return ZaberAxis(port, config, owns_port=owned).connect()
     except BaseException:
-        port.close()
+        if owned:
+            port.close()
         raise
 
 
 def open_xy_stage(
-    url: str,
+    where: str | ZaberPort,
     x: ZaberAxisConfig,
     y: ZaberAxisConfig,
     *,
     name: str = "xy stage",
     reply_timeout_s: float = 0.5,
     retries: int = 2,
+    baudrate: int = BAUDRATE,
 ) -> XYStage:
-    """Open ``url`` and connect both axes of an XY stage; the stage owns the port."""
-    port = ZaberPort(url, name=name, reply_timeout_s=reply_timeout_s, retries=retries)
-    port.open()
+    """Connect both axes of an XY stage.
+
+    ``where`` is a pyserial URL (a port is opened and owned by the stage) or a
+    shared :class:`ZaberPort` (e.g. the rail's chain; the caller closes it).
+    """
+    port, owned = _port_for(where, name, reply_timeout_s, retries, baudrate)
     try:
-        return XYStage(ZaberAxis(port, x), ZaberAxis(port, y), name=name, port=port).connect()
+        stage = XYStage(
+            ZaberAxis(port, x), ZaberAxis(port, y), name=name, port=port if owned else None
+        )
+        return stage.connect()
     except BaseException:
-        port.close()
+        if owned:
+            port.close()
         raise
 
 
