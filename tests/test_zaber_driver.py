@@ -248,6 +248,29 @@ def test_xy_stage(topology: str, transport: str) -> None:
             assert emu.snapshot(1, 1).position == 100000  # nothing moved
 
 
+def test_xy_refuses_before_moving_anything_if_one_axis_is_not_homed() -> None:
+    devices, x_cfg, y_cfg = _xy_configs("two devices, one chain")
+    with ZaberEmulator(devices, speedup=SPEEDUP) as emu:
+        with open_xy_stage(emu.url, x_cfg, y_cfg) as xy:
+            xy.x.home()
+            before = len(emu.received)
+            with pytest.raises(errors.NotReferenced, match="stage y"):
+                xy.move_xy_mm(5.0, 5.0)
+            assert not any("move" in line for line in list(emu.received)[before:])
+
+
+def test_home_refuses_while_moving(emu: ZaberEmulator) -> None:
+    rail = open_rail(emu.url, cfg(speed_mm_s=5.0))
+    try:
+        rail.home()
+        pending = rail.start_move_abs_mm(90.0)
+        with pytest.raises(errors.DeviceBusy):
+            rail.home()
+        assert rail.finish(pending) == pytest.approx(90.0)
+    finally:
+        rail.close()
+
+
 def test_xy_failure_on_one_axis_stops_the_other() -> None:
     devices, x_cfg, y_cfg = _xy_configs("one device, two axes")
     with ZaberEmulator(devices, speedup=SPEEDUP) as emu:

@@ -260,7 +260,7 @@ def test_disconnect_mid_move(emu: ZaberEmulator, rail: ZaberAxis) -> None:
     assert isinstance(info.value, errors.PortUnavailable)
     assert emu.url in str(info.value) or "rail" in str(info.value)
     assert not rail.port.is_open
-    with pytest.raises(errors.PortUnavailable):
+    with pytest.raises(errors.ConnectionLost, match="connection was lost"):
         rail.position_mm()  # no silent use of a dead port
 
 
@@ -304,3 +304,15 @@ def test_power_cycle_while_idle_blocks_the_next_move(emu: ZaberEmulator, rail: Z
         rail.move_abs_mm(15.0)
     assert sent(emu, "move abs") == moves  # refused before sending anything
     assert not rail.is_homed()
+
+
+def test_home_recovers_from_a_fault_left_by_someone_else(
+    emu: ZaberEmulator, rail: ZaberAxis
+) -> None:
+    emu.stall_next_move(1, 1, at_fraction=0.5)
+    rail.port.request(1, 1, "move abs 200000")  # another client moves and stalls the axis
+    wait_for(lambda: "FS" in emu.snapshot().flags)
+    with pytest.raises(errors.StageStalled):
+        rail.move_abs_mm(10.0)  # the stale fault is reported before moving
+    rail.home()  # homing clears stale faults first, then succeeds
+    assert rail.is_homed() and rail.move_abs_mm(10.0) == pytest.approx(10.0)

@@ -305,14 +305,26 @@ class ZaberAxis:
         self._request("estop")
 
     def wait_idle(self, timeout_s: float) -> None:
-        """Wait until idle (``timeout_s`` s), raising typed errors for fault flags."""
+        """Wait until idle (``timeout_s`` s), raising typed errors for fault flags.
+
+        Past the timeout the axis is sent ``stop`` and MotionTimeout is raised.
+        """
         self._wait(time.monotonic() + timeout_s, context="waiting for idle")
 
     # ------------------------------------------------------------------ split motion (XY)
 
     def start_home(self, timeout_s: float | None = None) -> PendingMotion:
-        """Send ``home`` and return without waiting; pass the result to :meth:`finish`."""
+        """Send ``home`` and return without waiting; pass the result to :meth:`finish`.
+
+        Homing is the recovery from faults: stale fault flags are cleared first, so
+        the flags seen after homing are homing's own.  Raises DeviceBusy if moving.
+        """
         self._require_connected()
+        status = self._status()
+        if status.busy:
+            raise DeviceBusy("cannot home: axis already moving", device=self.label)
+        if status.warning in protocol.CLEARABLE_FLAGS:
+            self.clear_warnings()
         reply = self._request("home")
         if timeout_s is None:
             low, high = self._limits_usteps
@@ -326,17 +338,7 @@ class ZaberAxis:
         Raises TargetOutOfRange, NotReferenced, DeviceBusy, CommandRejected, or the
         error for a fault flag still set on the device.
         """
-        self._require_connected()
-        limits = self.limits_mm()
-        if not math.isfinite(target_mm) or not (
-            limits.min_mm - 1e-9 <= target_mm <= limits.max_mm + 1e-9
-        ):
-            raise TargetOutOfRange(
-                f"target {target_mm} mm outside travel [{limits.min_mm:.4f}, {limits.max_mm:.4f}] mm",
-                device=self.label,
-            )
-        target = self.mm_to_usteps(target_mm)
-        target = min(max(target, self._limits_usteps[0]), self._limits_usteps[1])
+        target = self.check_target_mm(target_mm)
         status = self._status()
         if status.warning == "WR" or self._needs_home:
             self._needs_home = self._needs_home or status.warning == "WR"
@@ -361,6 +363,24 @@ class ZaberAxis:
             kinematic = protocol.move_duration_s(target - start, self._speed, self._accel)
             timeout_s = kinematic * self._cfg.timeout_scale * 1.5 + self._cfg.timeout_margin_s
         return PendingMotion("move", target, time.monotonic() + timeout_s, reply.attempts > 1)
+
+    def check_target_mm(self, target_mm: float) -> int:
+        """Validate a target (mm) against the limits; return it in microsteps.
+
+        Sends nothing.  Raises TargetOutOfRange.
+        """
+        self._require_connected()
+        limits = self.limits_mm()
+        if not math.isfinite(target_mm) or not (
+            limits.min_mm - 1e-9 <= target_mm <= limits.max_mm + 1e-9
+        ):
+            raise TargetOutOfRange(
+                f"target {target_mm} mm outside travel "
+                f"[{limits.min_mm:.4f}, {limits.max_mm:.4f}] mm",
+                device=self.label,
+            )
+        target = self.mm_to_usteps(target_mm)
+        return min(max(target, self._limits_usteps[0]), self._limits_usteps[1])
 
     def finish(self, pending: PendingMotion) -> float:
         """Wait for a started motion, check flags and position; return position (mm)."""

@@ -103,6 +103,7 @@ class ZaberPort:
         self._buffer = bytearray()
         self._next_id = 0
         self._checksummed: set[int] = set()
+        self._lost: str | None = None  # why the port was closed under us, if it was
         self.stats = PortStats()
         #: Last alerts received (they are not needed for operation; kept for diagnostics).
         self.alerts: deque[Alert] = deque(maxlen=32)
@@ -145,6 +146,7 @@ class ZaberPort:
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise self._open_error(exc) from exc
             self._serial = ser
+            self._lost = None
             self._buffer.clear()
             self._checksummed.clear()
             try:
@@ -253,6 +255,8 @@ class ZaberPort:
         From then on replies from ``device`` without a valid checksum are rejected.
         """
         label = label or f"{self._name} device {device}"
+        if device in self._checksummed:
+            return
         reply = self.request(device, 0, "set comm.checksum 1", label=label, require_checksum=False)
         if reply.rejected:
             raise protocol.rejection_error(reply, command="set comm.checksum 1", device=label)
@@ -308,7 +312,6 @@ class ZaberPort:
             line = self._read_line(deadline, label)
             if line is None:
                 if bad is not None:
-                    bad.device = label
                     raise type(bad)(
                         f"no valid reply to {text!r}; last bad line: {bad.message}", device=label
                     )
@@ -338,14 +341,20 @@ class ZaberPort:
             self.stats.other += 1
 
     def _port(self, label: str) -> Any:
+        if self._serial is None and self._lost is not None:
+            raise ConnectionLost(
+                f"port {self._url} was closed when the connection was lost ({self._lost})",
+                device=label,
+            )
         if self._serial is None:
             raise PortUnavailable(
                 f"port {self._url} is not open", device=label, hint="call open() first"
             )
         return self._serial
 
-    def _lost(self, exc: BaseException, label: str) -> ConnectionLost:
+    def _connection_lost(self, exc: BaseException, label: str) -> ConnectionLost:
         self.close()
+        self._lost = str(exc)
         return ConnectionLost(f"connection on {self._url} lost: {exc}", device=label)
 
     def _write(self, data: bytes, label: str) -> None:
@@ -353,7 +362,7 @@ class ZaberPort:
         try:
             ser.write(data)
         except (serial.SerialException, OSError) as exc:
-            raise self._lost(exc, label) from exc
+            raise self._connection_lost(exc, label) from exc
 
     def _read_line(self, deadline: float, label: str) -> bytes | None:
         """Next complete line (without terminator), or None at the deadline."""
@@ -376,7 +385,7 @@ class ZaberPort:
                 waiting = ser.in_waiting
                 chunk = ser.read(waiting if waiting > 0 else 1)
             except (serial.SerialException, OSError) as exc:
-                raise self._lost(exc, label) from exc
+                raise self._connection_lost(exc, label) from exc
             buffer += chunk
 
 

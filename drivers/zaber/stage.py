@@ -30,7 +30,7 @@ XY stage daisy-chained behind the rail (one cable, one port shared)::
 
 from __future__ import annotations
 
-from drivers.errors import DeviceError
+from drivers.errors import DeviceError, NotReferenced
 from drivers.zaber.axis import PendingMotion, ZaberAxis, ZaberAxisConfig
 from drivers.zaber.port import BAUDRATE, ZaberPort
 
@@ -113,10 +113,13 @@ class XYStage:
         the other is stopped and the first error is raised.
         """
         for axis, target in ((self._x, x_mm), (self._y, y_mm)):
-            limits = axis.limits_mm()
-            if not limits.contains(target):
-                # let the axis raise its own, fully worded TargetOutOfRange
-                axis.start_move_abs_mm(target, timeout_s)
+            axis.check_target_mm(target)  # sends nothing
+        for axis in (self._x, self._y):
+            if not axis.is_homed():
+                raise NotReferenced(
+                    f"refusing to move to ({x_mm}, {y_mm}) mm: {axis.name} not homed",
+                    device=axis.label,
+                )
         first = self._x.start_move_abs_mm(x_mm, timeout_s)
         try:
             second = self._y.start_move_abs_mm(y_mm, timeout_s)
