@@ -15,6 +15,7 @@ later), not only by the Zaber one.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 
 class DeviceError(Exception):
@@ -38,6 +39,18 @@ class DeviceError(Exception):
         where = f"{self.device}: " if self.device else ""
         tail = f" -- check: {self.hint}" if self.hint else ""
         return f"{where}{self.message}{tail}"
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # keep every attribute (reason, flags, positions...) across pickling,
+        # e.g. when an error is sent back from a worker process
+        return (_restore, (type(self), self.args, self.__dict__.copy()))
+
+
+def _restore(cls: type[DeviceError], args: tuple[Any, ...], state: dict[str, Any]) -> DeviceError:
+    error = cls.__new__(cls)
+    Exception.__init__(error, *args)
+    error.__dict__.update(state)
+    return error
 
 
 # --------------------------------------------------------------------------- transport

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import pathlib
+import pickle
 
 import pytest
 
@@ -285,6 +286,17 @@ def test_device_error_is_generic_and_subclassable() -> None:
     assert isinstance(errors.TargetOutOfRange("x"), ValueError)
     mismatch = errors.PositionMismatch("off", target_mm=1.0, actual_mm=1.1, tolerance_mm=0.001)
     assert (mismatch.target_mm, mismatch.actual_mm) == (1.0, 1.1)
+
+
+def test_errors_survive_pickling_with_their_attributes() -> None:
+    rejected = errors.CommandRejected("no", reason="BADDATA", command="move abs 5", device="rail")
+    copy = pickle.loads(pickle.dumps(rejected))
+    assert type(copy) is errors.CommandRejected and str(copy) == str(rejected)
+    assert (copy.reason, copy.command, copy.device) == ("BADDATA", "move abs 5", "rail")
+    stalled = errors.StageStalled("stall", device="rail", flags={"FS"})
+    assert pickle.loads(pickle.dumps(stalled)).flags == frozenset({"FS"})
+    off = errors.PositionMismatch("off", target_mm=1.0, actual_mm=1.1, tolerance_mm=0.001)
+    assert pickle.loads(pickle.dumps(off)).actual_mm == 1.1
 
 
 def test_production_code_never_imports_sim() -> None:
