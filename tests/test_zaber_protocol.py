@@ -61,20 +61,22 @@ def test_format_command_bytes() -> None:
 
 
 @pytest.mark.parametrize(
-    ("kwargs", "text"),
+    ("device", "axis", "message_id", "text"),
     [
-        ({"device": 100, "axis": 0}, "get pos"),
-        ({"device": -1, "axis": 0}, "get pos"),
-        ({"device": 1, "axis": 10}, "get pos"),
-        ({"device": 1, "axis": 1, "message_id": 100}, "get pos"),
-        ({"device": 1, "axis": 1}, "get pos:12"),
-        ({"device": 1, "axis": 1}, "get\npos"),
-        ({"device": 1, "axis": 1}, "set a/b 1"),
+        (100, 0, None, "get pos"),
+        (-1, 0, None, "get pos"),
+        (1, 10, None, "get pos"),
+        (1, 1, 100, "get pos"),
+        (1, 1, None, "get pos:12"),
+        (1, 1, None, "get\npos"),
+        (1, 1, None, "set a/b 1"),
     ],
 )
-def test_format_command_rejects_bad_input(kwargs: dict[str, int], text: str) -> None:
+def test_format_command_rejects_bad_input(
+    device: int, axis: int, message_id: int | None, text: str
+) -> None:
     with pytest.raises(ValueError):
-        protocol.format_command(kwargs.pop("device"), kwargs.pop("axis"), text, **kwargs)
+        protocol.format_command(device, axis, text, message_id=message_id)
 
 
 def test_parse_command_optional_fields_and_terminators() -> None:
