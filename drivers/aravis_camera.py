@@ -403,8 +403,7 @@ class AravisCamera:
             self._drain_stale()
             assert self._sfnc is not None
             self._sfnc.nodes.execute("TriggerSoftware")
-            with self._gerrors("stream"):
-                buffer = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
+            buffer = self._pop_frame_buffer(time.monotonic() + timeout_s)
             if buffer is None:
                 if self._probe_lost():
                     self._mark_lost()
@@ -632,6 +631,23 @@ class AravisCamera:
         """Requeue buffers of earlier triggers so the next pop is this trigger's frame."""
         while (old := self._stream.try_pop_buffer()) is not None:
             self._stream.push_buffer(old)
+
+    def _pop_frame_buffer(self, deadline: float) -> Any:
+        """The next buffer that holds a frame, or None at the deadline.
+
+        Aravis hands back an untouched buffer (status ``CLEARED``) when a datagram that is
+        not a frame start reaches the stream port (e.g. a stray late packet on a reused
+        port); such a buffer carries no frame and is requeued.
+        """
+        cleared = _aravis().Aravis.BufferStatus.CLEARED
+        while (remaining := deadline - time.monotonic()) > 0:
+            with self._gerrors("stream"):
+                buffer = self._stream.timeout_pop_buffer(max(1, int(remaining * 1e6)))
+            if buffer is None or buffer.get_status() != cleared:
+                return buffer
+            log.debug("%s: ignoring a buffer that holds no frame", self.label)
+            self._stream.push_buffer(buffer)
+        return None
 
     def _probe_lost(self) -> bool:
         """After a frame timeout: is the camera gone (or no longer ours)?"""
