@@ -88,7 +88,8 @@ def test_dropped_reply_to_a_query_is_retried(emu: ZaberEmulator, rail: ZaberAxis
 def test_dropped_reply_to_a_move_is_retried_and_lands_right(
     emu: ZaberEmulator, make_rail: Callable[..., ZaberAxis]
 ) -> None:
-    rail = make_rail(speed_mm_s=2.0)  # 23 mm take 0.23 s: the repeat arrives mid-move
+    # 0.5 mm/s: the 23 mm take 0.92 s, so the repeat (after 0.15 s) arrives mid-move
+    rail = make_rail(speed_mm_s=0.5)
     emu.drop_replies(1, command="move abs")
     # the move is re-sent (idempotent target); the repeat interrupts the first (NI),
     # which the driver expects because it re-sent the command itself
