@@ -19,6 +19,7 @@ Conventions (all backends):
 
 from __future__ import annotations
 
+import os
 import types
 from dataclasses import dataclass, field
 from typing import Protocol, Self, runtime_checkable
@@ -517,17 +518,21 @@ def decode_mono(
     pixel_format: str,
     device: str,
     frame_id: int | None = None,
+    copy: bool = True,
 ) -> np.ndarray:
-    """Turn a transfer buffer into a writable ``(height, width)`` array.
+    """Turn a transfer buffer into a ``(height, width)`` array.
 
     Unpacked mono formats only: Mono8 -> uint8; Mono10/12/14/16 -> uint16 from
     little-endian 16-bit words (PFNC), counts right-aligned.  Raises ``IncompleteFrame``
-    if the buffer is shorter than ``width * height`` pixels.
+    if the buffer is shorter than ``width * height`` pixels.  With ``copy=False`` and a
+    writable uint8 array (already a private copy) the result is a view of it.
     """
     bpp = bytes_per_pixel(pixel_format)
     need = width * height * bpp
-    raw = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
-    raw = raw.reshape(-1).view(np.uint8)
+    raw = data.reshape(-1).view(np.uint8) if isinstance(data, np.ndarray) else None
+    if raw is None:
+        raw = np.frombuffer(data, dtype=np.uint8)
+        copy = True
     if raw.size < need:
         raise IncompleteFrame(
             f"frame {frame_id} holds {raw.size} bytes, {width}x{height} {pixel_format} needs {need}",
@@ -537,18 +542,12 @@ def decode_mono(
             hint="the payload size / ROI settings; a frame was cut short",
         )
     if bpp == 1:
-        return raw[:need].reshape(height, width).copy()
-    return raw[:need].view("<u2").reshape(height, width).astype(np.uint16, copy=True)
-
-
-def check_pixels(pixels: np.ndarray, pixel_format: str) -> None:
-    """Validate an array against a format (shape 2-D, dtype, counts within the bit depth)."""
-    depth = bit_depth(pixel_format)
-    expected = np.uint8 if depth == 8 else np.uint16
-    if pixels.ndim != 2 or pixels.dtype != expected:
-        raise InvalidSetting(f"{pixel_format} pixels must be a 2-D {np.dtype(expected)} array")
-    if depth not in (8, 16) and pixels.size and int(pixels.max()) >> depth:
-        raise InvalidSetting(f"{pixel_format} counts must be below {1 << depth}")
+        pixels = raw[:need].reshape(height, width)
+    else:
+        pixels = raw[:need].view("<u2").reshape(height, width).astype(np.uint16, copy=False)
+    if copy or not pixels.flags.writeable or not pixels.flags.c_contiguous:
+        pixels = pixels.copy()
+    return pixels
 
 
 def pixel_format_name(code_or_name: int | str) -> str:
@@ -556,6 +555,40 @@ def pixel_format_name(code_or_name: int | str) -> str:
     if isinstance(code_or_name, str):
         return code_or_name
     return PFNC_NAMES.get(code_or_name, f"0x{code_or_name:08x}")
+
+
+def create_camera(
+    backend: str,
+    *,
+    address: str | None = None,
+    serial: str | None = None,
+    cti: str | os.PathLike[str] | None = None,
+    allow_discovery: bool = False,
+) -> Camera:
+    """Build (not open) a camera from configuration values.
+
+    Args:
+        backend: ``"aravis"`` (GigE Vision through Aravis) or ``"harvesters"`` (GenTL).
+        address: aravis: camera IPv4 address or host name; harvesters: device id in the
+            producer's list (optional).
+        serial: camera serial number; aravis: checked against the camera at ``address``.
+        cti: harvesters: path of the GenTL producer (.cti).
+        allow_discovery: aravis only: allow GigE Vision discovery (broadcast) to find a
+            camera by serial without address.  Off by default.
+
+    The backend module is imported here, so its library is only needed when used.
+    """
+    if backend == "aravis":
+        from drivers.aravis_camera import AravisCamera
+
+        return AravisCamera(address, serial=serial, allow_discovery=allow_discovery)
+    if backend == "harvesters":
+        from drivers.harvesters_camera import HarvestersCamera
+
+        if cti is None:
+            raise ValueError('backend "harvesters" needs the GenTL producer path (cti)')
+        return HarvestersCamera(cti, serial=serial, device_id=address)
+    raise ValueError(f'unknown camera backend {backend!r}: "aravis" or "harvesters"')
 
 
 __all__ = [
@@ -571,7 +604,7 @@ __all__ = [
     "SfncCamera",
     "bit_depth",
     "bytes_per_pixel",
-    "check_pixels",
+    "create_camera",
     "decode_mono",
     "pixel_format_name",
 ]
