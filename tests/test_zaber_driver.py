@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -121,7 +122,7 @@ def test_soft_limits_and_speed_settings(emu: ZaberEmulator) -> None:
 
 
 def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator) -> None:
-    rail = open_rail(emu.url, cfg(speed_mm_s=5.0))  # 99 mm take 0.4 s at speedup 50
+    rail = open_rail(emu.url, cfg(speed_mm_s=2.0))  # 99 mm take 1 s at speedup 50
     rail.home()
     outcome: list[BaseException] = []
 
@@ -145,7 +146,7 @@ def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator) -> Non
 
 
 def test_estop_halts_at_once(emu: ZaberEmulator) -> None:
-    rail = open_rail(emu.url, cfg(speed_mm_s=5.0))
+    rail = open_rail(emu.url, cfg(speed_mm_s=2.0))
     rail.home()
     pending = rail.start_move_abs_mm(90.0)
     wait_for(lambda: emu.snapshot().position > 50000)
@@ -236,16 +237,25 @@ def test_xy_stage(topology: str, transport: str) -> None:
             xy.home()
             assert xy.is_homed() and xy.position_xy_mm() == (0.0, 0.0)
             assert xy.move_xy_mm(30.0, 12.5) == pytest.approx((30.0, 12.5))
-            # the axes move at the same time: both busy right after the start
-            start_x = xy.x.start_move_abs_mm(10.0)
-            start_y = xy.y.start_move_abs_mm(40.0)
-            y_dev, y_axis = y_cfg.device, y_cfg.axis
-            assert emu.snapshot(1, 1).busy and emu.snapshot(y_dev, y_axis).busy
-            assert (xy.x.finish(start_x), xy.y.finish(start_y)) == pytest.approx((10.0, 40.0))
+            assert xy.move_xy_mm(10.0, 40.0) == pytest.approx((10.0, 40.0))
             assert xy.position_xy_mm() == pytest.approx((10.0, 40.0))
             with pytest.raises(errors.TargetOutOfRange):
                 xy.move_xy_mm(10.0, 50.5)
             assert emu.snapshot(1, 1).position == 100000  # nothing moved
+
+
+def test_xy_axes_move_at_the_same_time() -> None:
+    devices, x_cfg, y_cfg = _xy_configs("one device, two axes")
+    slow_x = dataclasses.replace(x_cfg, speed_mm_s=0.5)
+    slow_y = dataclasses.replace(y_cfg, speed_mm_s=0.5)
+    with ZaberEmulator(devices, speedup=SPEEDUP) as emu:
+        with open_xy_stage(emu.url, slow_x, slow_y) as xy:
+            xy.home()  # from 10 mm: 0.4 s
+            # 10 mm at 0.5 mm/s: 0.4 s; y is started while x is still far from done
+            start_x = xy.x.start_move_abs_mm(10.0)
+            start_y = xy.y.start_move_abs_mm(10.0)
+            assert emu.snapshot(1, 1).busy and emu.snapshot(1, 2).busy
+            assert (xy.x.finish(start_x), xy.y.finish(start_y)) == pytest.approx((10.0, 10.0))
 
 
 def test_xy_refuses_before_moving_anything_if_one_axis_is_not_homed() -> None:
@@ -272,7 +282,8 @@ def test_home_refuses_while_moving(emu: ZaberEmulator) -> None:
 
 
 def test_xy_failure_on_one_axis_stops_the_other() -> None:
-    devices, x_cfg, y_cfg = _xy_configs("one device, two axes")
+    devices, x_cfg, _ = _xy_configs("one device, two axes")
+    y_cfg = cfg("stage y", 1, 2, speed_mm_s=1.0)  # y needs 0.8 s: still moving when x stalls
     with ZaberEmulator(devices, speedup=SPEEDUP) as emu:
         with open_xy_stage(emu.url, x_cfg, y_cfg) as xy:
             xy.home()

@@ -158,13 +158,13 @@ def test_home_clears_wr_and_busy_lasts_as_long_as_the_move(emu: ZaberEmulator, l
     assert line.ask("/1 1 move abs 500000\n") == "@01 1 OK BUSY -- 0"
     wait_for(lambda: not protocol.parse_message(line.ask("/1 1 get pos\n")).busy)  # type: ignore[union-attr]
     elapsed = time.monotonic() - start
-    assert expected_s * 0.8 <= elapsed <= expected_s + 0.25  # upper bound: polling under load
+    assert expected_s * 0.8 <= elapsed <= expected_s + 1.0  # upper bound: polling under load
     assert line.ask("/1 1 get pos\n") == "@01 1 OK IDLE -- 500000"
 
 
 def test_stop_decelerates_and_sets_ni(emu: ZaberEmulator, line: Line) -> None:
     line.ask("/1 1 set pos 0\n")  # reference without homing
-    line.ask("/1 1 set maxspeed 81920\n")  # 5 mm/s (50000 usteps/s x 1.6384)
+    line.ask("/1 1 set maxspeed 40960\n")  # 2.5 mm/s (25000 usteps/s x 1.6384): 0.7 s move
     line.ask("/1 1 set accel 33\n")  # 20 mm/s^2: the stop lasts 0.25 s / speedup
     line.ask("/1 1 move abs 900000\n")
     wait_for(lambda: emu.snapshot(1, 1).position > 100000)
@@ -202,7 +202,7 @@ def test_power_cycle_loses_position(emu: ZaberEmulator, line: Line) -> None:
     line.ask("/1 1 move abs 3000\n")
     wait_for(lambda: not emu.snapshot(1, 1).busy)
     physical = emu.snapshot(1, 1).physical
-    emu.power_cycle(1, off_s=0.05)
+    emu.power_cycle(1, off_s=0.5)
     assert not emu.is_powered(1) and emu.snapshot(1, 1).flags == {"WR"}
     # while off, device 1 answers nothing: the next line is device 2's reply
     line.send("/1 1 get pos\n/2 0 get pos\n")

@@ -194,7 +194,7 @@ def test_stuck_busy_times_out_and_stops(emu: ZaberEmulator, rail: ZaberAxis) -> 
     start = time.monotonic()
     with pytest.raises(errors.MotionTimeout) as info:
         rail.move_abs_mm(57.0)  # 50 mm: 2.6 s / 50 x 1.5 + 0.3 s margin = 0.38 s
-    assert time.monotonic() - start < 2.0
+    assert time.monotonic() - start < 5.0  # derived timeout, not the 300 s test limit
     assert "stop sent" in str(info.value)
     assert sent(emu, " stop") >= 1 and not emu.snapshot().busy
     # the position is known (the device reported it throughout): no re-home needed
