@@ -9,10 +9,11 @@ parallel pytest-xdist workers take turns.
 from __future__ import annotations
 
 import ast
+import pickle
 import queue
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,8 @@ def test_errors_are_device_errors_that_name_the_device() -> None:
     assert str(err).startswith("gige://127.0.0.2: nothing answers -- check: ")
     assert isinstance(InvalidSetting("x"), ValueError)
     assert isinstance(CameraTimeout("x"), TimeoutError)
+    lost = pickle.loads(pickle.dumps(IncompleteFrame("bad", status="timeout", frame_id=9)))
+    assert (lost.status, lost.frame_id) == ("timeout", 9)
 
 
 def _imports(nodes: list[ast.stmt] | ast.Module) -> set[str]:
@@ -366,13 +369,22 @@ def test_address_without_a_camera_is_not_found() -> None:
 @needs_aravis
 def test_full_5120_sensor_frame_is_pixel_exact() -> None:
     pattern = np.random.default_rng(3).integers(0, 256, (5120, 5120), dtype=np.uint8)
-    source: Callable[[FrameRequest], np.ndarray] = lambda request: pattern  # noqa: E731
+
+    def source(request: FrameRequest) -> np.ndarray:
+        return pattern
+
+    exact = 0
     with FakeGigECamera(source, sensor_width=5120, sensor_height=5120) as fake:
         with aravis_camera.AravisCamera(ADDRESS) as cam:
             assert (cam.info().sensor_width, cam.info().sensor_height) == (5120, 5120)
             cam.configure(CameraSettings("Mono8"))
-            for _ in range(2):
-                frame = cam.grab(timeout_s=5.0)
+            for _ in range(3):
+                try:
+                    frame = cam.grab(timeout_s=5.0)
+                except IncompleteFrame:
+                    continue  # a UDP burst dropped on a saturated host: typed, never partial
                 assert frame.pixels.shape == (5120, 5120)
                 assert np.array_equal(frame.pixels, pattern)
+                exact += 1
         assert not fake.errors
+    assert exact >= 2
