@@ -317,3 +317,18 @@ def test_home_recovers_from_a_fault_left_by_someone_else(
         rail.move_abs_mm(10.0)  # the stale fault is reported before moving
     rail.home()  # homing clears stale faults first, then succeeds
     assert rail.is_homed() and rail.move_abs_mm(10.0) == pytest.approx(10.0)
+
+
+def test_lost_reference_hidden_behind_a_higher_warning(emu: ZaberEmulator, rail: ZaberAxis) -> None:
+    """Replies show only the top flag: WT (temperature) outranks WR and must not hide it."""
+    emu.set_flags(1, 1, "WT")
+    assert rail.is_homed() and rail.position_mm() == pytest.approx(7.0)  # WT alone is harmless
+    emu.power_cycle(1, off_s=0.01)
+    wait_for(lambda: emu.is_powered(1))
+    emu.set_flags(1, 1, "WT")
+    assert emu.snapshot().flags == {"WT", "WR"}
+    assert not rail.is_homed()
+    with pytest.raises(errors.NotReferenced):
+        rail.position_mm()
+    with pytest.raises(errors.NotReferenced):
+        rail.move_abs_mm(10.0)

@@ -26,6 +26,7 @@ Fault injection (each test drives one kind)::
     emu.drift_next_move(d, a, n)      next move ends n microsteps off target, no flag
     emu.disconnect_on_next_move(d, a, f) / emu.disconnect()   link drops
     emu.power_cycle_on_next_move(d, a, f) / emu.power_cycle(d)   position lost, WR set
+    emu.set_flags(d, a, "WT", ...)    raise any warning flag (temperature, voltage...)
 
 Modelling choices (documented where a real device may differ): a command with
 a wrong checksum is discarded without reply; moves are accepted while WR is
@@ -668,6 +669,14 @@ class ZaberEmulator:
     ) -> None:
         """The device loses power at ``at_fraction`` of the next move (off ``off_s`` s)."""
         self._set_move_fault(device, axis, _MoveFault("power", at_fraction, off_s=off_s))
+
+    def set_flags(self, device: int, axis: int, *flags: str) -> None:
+        """Raise warning flags on an axis directly (e.g. ``"WT"`` temperature, ``"WV"`` voltage)."""
+        unknown = set(flags) - set(protocol.WARNING_FLAGS)
+        if unknown:
+            raise ValueError(f"unknown warning flags {sorted(unknown)}")
+        with self._lock:
+            self._axis(device, axis).flags.update(flags)
 
     def disconnect(self) -> None:
         """Drop the line now (pty: closed for good; TCP: current client closed)."""

@@ -44,6 +44,9 @@ from drivers.zaber import protocol
 from drivers.zaber.port import ZaberPort
 from drivers.zaber.protocol import Reply
 
+#: Flags of lower precedence than WR: when a reply shows one of them, WR is not set.
+_BELOW_WR = frozenset(protocol.WARNING_PRIORITY[protocol.WARNING_PRIORITY.index("WR") + 1 :])
+
 
 @dataclass(frozen=True)
 class ZaberAxisConfig:
@@ -263,8 +266,7 @@ class ZaberAxis:
 
     def is_homed(self) -> bool:
         """True if the device has a reference (no WR) and the driver still trusts it."""
-        status = self._status()
-        return status.warning != "WR" and not self._needs_home
+        return self._has_reference(self._status()) and not self._needs_home
 
     def is_busy(self) -> bool:
         """True while the axis is moving."""
@@ -273,7 +275,7 @@ class ZaberAxis:
     def position_mm(self) -> float:
         """Current position (mm). Raises NotReferenced when the axis is not homed."""
         status = self._status()
-        if status.warning == "WR" or self._needs_home:
+        if self._needs_home or not self._has_reference(status):
             raise NotReferenced("position unknown: axis not homed", device=self.label)
         return self.usteps_to_mm(status.data_int())
 
@@ -446,6 +448,16 @@ class ZaberAxis:
 
     def _status(self) -> Reply:
         return self._request("get pos")
+
+    def _has_reference(self, status: Reply) -> bool:
+        """False if WR is set.  A reply shows only the highest-precedence flag, so when
+        the shown flag outranks WR (e.g. WT, WV) the full list is read."""
+        shown = status.warning
+        if shown == "WR":
+            return False
+        if shown == protocol.NO_WARNING or shown in _BELOW_WR:
+            return True
+        return "WR" not in self.warnings()
 
     def _quiet_stop(self) -> None:
         try:
