@@ -285,32 +285,32 @@ def combine(
             "Lr, Lp and La are not available; the focus plane comes from the standard "
             "corner's blur and the disparity model"
         )
-    # a first global fit (disparity only) gives b for the blur-shape curvature
+    # a first global fit (disparity only) gives b for the blur-shape curvature; then the
+    # blur-model focus and Q there give a better b, and the blur model is fitted again
     disp = global_fit(u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta)
     b_guess = disp.estimate.b_mm if disp.estimate.b_mm > f else f * 1.2
-    a_f_guess = focused_virtual_distance(f, b_guess)
-    try:
-        blur = fit_blur_model(u, arr["edge_width_px"], F=F, a_f=a_f_guess)
-    except FocusAtSweepEdge as exc:
-        partial["error"] = str(exc)
-        raise FocusAtEdgeError(str(exc), _json_clean(partial)) from exc
-    joint = global_fit(
-        u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta, edge_width_px=arr["edge_width_px"]
-    )
-    u_focus, u_focus_se = blur.object_distance_mm, blur.object_distance_se_mm
-    q_f, q_f_se = q_at(u, arr["Q"], arr["Q_se"], u_focus)
-    # the focus-plane uncertainty moves Q along the Q(u) curve
-    dq_du = _local_slope(u, arr["Q"], u_focus)
+    dq_du = _local_slope(u, arr["Q"], float(np.nanmedian(u)))
+    for _ in range(3):
+        a_f_guess = focused_virtual_distance(f, b_guess)
+        try:
+            blur = fit_blur_model(u, arr["edge_width_px"], F=F, a_f=a_f_guess)
+        except FocusAtSweepEdge as exc:
+            partial["error"] = str(exc)
+            raise FocusAtEdgeError(str(exc), _json_clean(partial)) from exc
+        u_focus, u_focus_se = blur.object_distance_mm, blur.object_distance_se_mm
+        q_f, q_f_se = q_at(u, arr["Q"], arr["Q_se"], u_focus)
+        # the focus-plane uncertainty moves Q along the Q(u) curve
+        dq_du = _local_slope(u, arr["Q"], u_focus)
+        b_new = f * (1.0 + q_f)
+        converged = abs(b_new - b_guess) < 1e-7 * b_guess
+        b_guess = b_new
+        if converged:
+            break
+    joint = global_fit(u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta,
+                       edge_width_px=arr["edge_width_px"])
     q_total_se = float(np.hypot(q_f_se, dq_du * u_focus_se))
-    esif = paper_estimate(
-        q_f,
-        q_total_se,
-        f=f,
-        D=D,
-        delta=delta,
-        focus_object_distance_mm=u_focus,
-        focus_se_mm=u_focus_se,
-    )
+    esif = paper_estimate(q_f, q_total_se, f=f, D=D, delta=delta,
+                          focus_object_distance_mm=u_focus, focus_se_mm=u_focus_se)
     paper = paper_focus(u, La)
     paper_est: Estimate | None = None
     if paper is not None:

@@ -1,0 +1,137 @@
+"""`lfcal simulate` and `lfcal calibrate` end to end, and their handling of bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from station.cli import main
+
+FRAMES = 25  # 4 mm steps over the 96 mm sweep keep the test fast
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("sim") / "rotated"
+    code = main(["simulate", str(out), "--preset", "rotated", "--frames", str(FRAMES),
+                 "--step-mm", "4", "--width", "2400", "--height", "800", "--seed", "3"])
+    assert code == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def result(sweep: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("res")
+    code = main(["calibrate", str(sweep), "--out", str(out / "result.json"),
+                 "--plots", str(out / "plots")])
+    assert code == 0
+    data = json.loads((out / "result.json").read_text())
+    data["_plots"] = sorted(p.name for p in (out / "plots").iterdir())
+    return data
+
+
+def test_simulate_writes_a_complete_archive_with_truth(sweep: Path) -> None:
+    manifest = json.loads((sweep / "sweep.json").read_text())
+    assert manifest["format"] == "lfcal-sweep/1"
+    assert len(manifest["frames"]) == FRAMES
+    assert (sweep / "white.png").is_file()
+    truth = json.loads((sweep / "truth.json").read_text())
+    assert truth["focus"]["object_distance_mm"] == pytest.approx(432.37)
+    assert len(truth["frames"]) == FRAMES
+    assert not list(sweep.parent.glob(".*partial*"))
+
+
+def test_calibration_matches_truth_within_twice_the_targets(sweep: Path, result: dict) -> None:
+    truth = json.loads((sweep / "truth.json").read_text())
+    assert abs(result["a_mm"] / truth["a_mm"] - 1) < 1e-3
+    assert abs(result["b_mm"] / truth["b_mm"] - 1) < 1e-3
+    assert abs(result["Q"] / truth["Q"] - 1) < 1e-3
+    assert abs(result["focus"]["object_distance_mm"] - truth["focus"]["object_distance_mm"]) < 2.0
+    assert abs(result["focus"]["rail_mm"] - truth["focus"]["rail_mm"]) < 2.0
+    tq = {f["index"]: f for f in truth["frames"]}
+    worst = max(abs(f["patch_size_px"] - tq[f["index"]]["patch_size_px"])
+                for f in result["frames"])
+    assert worst < 0.1
+    assert result["mla"]["lens_pitch_px"] == pytest.approx(truth["mla"]["lens_pitch_px"], rel=1e-6)
+    assert result["mla"]["image_pitch_px"] == pytest.approx(truth["mla"]["image_pitch_px"],
+                                                            rel=2e-4)
+    assert result["mla"]["rotation_deg"] == pytest.approx(truth["mla"]["rotation_deg"], abs=0.01)
+
+
+def test_result_json_has_the_documented_keys(result: dict) -> None:
+    for key in ("a_mm", "b_mm", "Q", "patch_size_px", "uncertainty", "focus", "mla", "frames",
+                "estimates", "consistency"):
+        assert key in result
+    for key in ("rail_mm", "object_distance_mm", "uncertainty_mm"):
+        assert key in result["focus"]
+    for key in ("lens_pitch_px", "image_pitch_px", "rotation_deg"):
+        assert key in result["mla"]
+    for frame in result["frames"]:
+        for key in ("rail_mm", "Q", "patch_size_px", "Ls_px", "Lr_px", "La_mm"):
+            assert key in frame
+    assert result["uncertainty"]["a_mm"] > 0
+    assert set(result["estimates"]) >= {"esif", "global", "paper_argmin_La"}
+    assert result["_plots"] == ["disparity.png", "focus.png"]
+
+
+def test_missing_and_corrupt_frames_are_skipped_and_reported(sweep: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    damaged = tmp_path / "damaged"
+    shutil.copytree(sweep, damaged)
+    (damaged / "frames" / "0003.png").unlink()
+    (damaged / "frames" / "0007.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    code = main(["calibrate", str(damaged), "--out", str(tmp_path / "r.json")])
+    assert code == 0
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert set(data["skipped_frames"]) == {"3", "7"}
+    assert any("skipped" in w for w in data["warnings"])
+
+
+def test_sweep_with_the_corner_never_found(tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "blank"
+    assert main(["simulate", str(out), "--preset", "rotated", "--frames", "6", "--step-mm", "15",
+                 "--width", "800", "--height", "800", "--principal-point", "3000,3000"]) == 0
+    code = main(["calibrate", str(out), "--out", str(tmp_path / "partial.json")])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert "corner was found in only 0" in err
+    partial = json.loads((tmp_path / "partial.json").read_text())
+    assert len(partial["frames"]) == 6
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["simulate", "{tmp}/x", "--preset", "nosuch"], "unknown preset 'nosuch'"),
+        (["simulate", "{tmp}/x", "--width", "50", "--height", "50"], "smaller than one lens"),
+        (["simulate", "/proc/forbidden/x", "--frames", "1", "--width", "300", "--height", "300"],
+         "cannot write"),
+        (["calibrate", "{tmp}/does-not-exist"], "no such sweep directory"),
+    ],
+)
+def test_bad_input_gives_one_clear_line(argv: list[str], message: str, tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    code = main([a.replace("{tmp}", str(tmp_path)) for a in argv])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert message in err
+    assert len(err.splitlines()) == 1
+    assert not (tmp_path / "x" / "sweep.json").exists()
+
+
+def test_invalid_manifest_is_reported_with_its_key(sweep: Path, tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    broken = tmp_path / "broken"
+    shutil.copytree(sweep, broken)
+    manifest = json.loads((broken / "sweep.json").read_text())
+    del manifest["optics"]["mla_pitch_mm"]
+    manifest["camera"]["bit_depth"] = "12"
+    (broken / "sweep.json").write_text(json.dumps(manifest))
+    assert main(["calibrate", str(broken)]) == 2
+    err = capsys.readouterr().err
+    assert "optics.mla_pitch_mm" in err and "camera.bit_depth" in err
