@@ -39,8 +39,13 @@ try:
     import gi
 
     gi.require_version("Aravis", "0.8")
-    from gi.repository import Aravis  # noqa: F401
+    from gi.repository import Aravis
 
+    # Belt and braces: the drivers open cameras by unicast address and never use Aravis's
+    # interface enumeration, but with every interface disabled even an accidental
+    # arv_open_device / update_device_list here could not broadcast a discovery.
+    for _i in range(Aravis.get_n_interfaces()):
+        Aravis.disable_interface(Aravis.get_interface_id(_i))
     ARAVIS_ERROR = ""
 except (ImportError, ValueError) as exc:  # pragma: no cover - the Makefile installs it
     ARAVIS_ERROR = f"Aravis 0.8 / PyGObject not importable: {exc}"

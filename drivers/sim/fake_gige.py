@@ -35,6 +35,7 @@ Run it by hand (for ``arv-tool-0.8 -a 127.0.0.1`` or the station)::
 from __future__ import annotations
 
 import argparse
+import atexit
 import ctypes
 import ctypes.util
 import fcntl
@@ -43,6 +44,7 @@ import queue
 import tempfile
 import threading
 import time
+import weakref
 import xml.etree.ElementTree as ET
 from collections import deque
 from collections.abc import Callable
@@ -178,6 +180,14 @@ class _Lib:
 
 
 _LIB: _Lib | None = None
+_RUNNING: weakref.WeakSet[FakeGigECamera] = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_all() -> None:
+    """Stop simulators left running, before the interpreter they call back into is gone."""
+    for cam in list(_RUNNING):
+        cam.stop()
 
 
 def _lib() -> _Lib:
@@ -449,10 +459,12 @@ class FakeGigECamera:
         lib.arv_fake_camera_write_memory(fake, REG_GAIN_DB, len(gain), gain)
         lib.arv_fake_camera_set_trigger_frequency(fake, float(self.trigger_poll_hz))
         lib.arv_fake_camera_set_fill_pattern(fake, self._callback, None)
+        _RUNNING.add(self)
 
     def stop(self) -> None:
         """Stop answering (like an unplugged camera); the address stays reserved."""
         gv, self._gv, self._fake = self._gv, None, None
+        _RUNNING.discard(self)
         if gv is not None:
             _lib().g_object_unref(gv)  # joins the simulator thread; ctypes releases the GIL
 
