@@ -23,7 +23,9 @@ reopens it once (bounded by Aravis's GVCP timeouts, about 2.5 s); ``reconnect`` 
 until a deadline.  Settings are re-applied after a reopen.
 
 Aravis 0.8 GVCP timing is fixed: a command to an absent camera fails after 5 tries of
-500 ms (about 2.5 s), so detecting a lost camera takes that long.
+500 ms (about 2.5 s), so detecting a lost camera during a grab takes that long.  Opening
+and reopening first send one unicast GVCP read (:func:`gvcp_ping`), so an absent camera
+is reported within about a second.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import ctypes.util
 import ipaddress
 import logging
 import socket
+import struct
 import threading
 import time
 import types
@@ -146,6 +149,38 @@ def _resolve_ipv4(address: str) -> str | None:
     except (socket.gaierror, UnicodeError):
         return None
     return str(infos[0][4][0]) if infos else None
+
+
+def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
+    """True if a GigE Vision device answers a GVCP read of its version register.
+
+    One unicast READREG command to ``ip``:3956 per try (no broadcast); a device answers
+    reads from any application, even while another one controls it.  Used to tell
+    "camera absent" quickly instead of waiting for Aravis's 2.5 s of GVCP retries.
+    """
+    request_id = 0x4C46
+    packet = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, request_id, 0x0000)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.connect((ip, GVCP_PORT))
+        except OSError:
+            return False
+        for _ in range(tries):
+            deadline = time.monotonic() + timeout_s / tries
+            try:
+                sock.send(packet)
+                while (remaining := deadline - time.monotonic()) > 0:
+                    sock.settimeout(remaining)
+                    ack = sock.recv(64)
+                    if len(ack) >= 12:
+                        _status, answer, _length, ack_id = struct.unpack(">HHHH", ack[:8])
+                        if answer == 0x0081 and ack_id == request_id:
+                            return True
+            except ConnectionRefusedError:  # ICMP port unreachable: nothing listens
+                threading.Event().wait(max(0.0, deadline - time.monotonic()))
+            except OSError:  # timeout
+                pass
+    return False
 
 
 def _local_address_for(ip: str) -> str | None:
@@ -595,6 +630,8 @@ class AravisCamera:
                 hint="the host's camera interface is up and in the camera's subnet",
             )
         self._ip = ip
+        if not gvcp_ping(ip, timeout_s=1.0, tries=4):
+            raise CameraNotFound(f"no GigE Vision camera answers at {ip}", device=self.label)
         try:
             self._device = ar.Aravis.GvDevice.new(
                 ar.Gio.InetAddress.new_from_string(local), ar.Gio.InetAddress.new_from_string(ip)
@@ -729,6 +766,8 @@ class AravisCamera:
 
     def _reopen_once(self) -> None:
         """One bounded attempt to reopen a lost camera."""
+        if self._ip is not None and not gvcp_ping(self._ip, timeout_s=0.6):
+            raise CameraLost("the camera is still not answering", device=self.label)
         # The old session must be gone before a new one takes control: its finalizer
         # releases the control channel, which would otherwise drop the new session.
         deadline = time.monotonic() + 15.0

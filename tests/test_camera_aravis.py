@@ -319,6 +319,10 @@ def test_lost_camera_raises_then_grab_reconnects_when_it_is_back(
         camera.grab(timeout_s=1.0)
     assert ADDRESS in str(err.value) and "check:" in str(err.value)
     assert camera.is_open
+    start = time.monotonic()
+    with pytest.raises(CameraLost, match="still not answering"):
+        camera.grab(timeout_s=1.0)  # one bounded reopen attempt, camera still absent
+    assert time.monotonic() - start < 2.0
     fake.start()  # plugged back in: a fresh camera with default settings
     frame = camera.grab(timeout_s=2.0)  # one automatic reopen, settings re-applied
     assert_served(fake, frame)
