@@ -43,8 +43,9 @@ def _sweep(name: str, frames: int) -> Path:
     return path
 
 
-def _corner_rms(result: dict[str, Any], truth: dict[str, Any], archive: SweepArchive
-                ) -> tuple[float, float, int]:
+def _corner_rms(
+    result: dict[str, Any], truth: dict[str, Any], archive: SweepArchive
+) -> tuple[float, float, int]:
     """ESIF and cv2.cornerSubPix RMS (px) on the micro-images used in the frame nearest focus."""
     u0 = truth["focus"]["object_distance_mm"]
     frames = [f for f in result["frames"] if f.get("Q") is not None]
@@ -63,15 +64,18 @@ def _corner_rms(result: dict[str, Any], truth: dict[str, Any], archive: SweepArc
             start = np.array([[[round(t[0]), round(t[1])]]], dtype=np.float32)
             r = cv2.cornerSubPix(image, start, (5, 5), (-1, -1), crit)[0, 0]
             cv.append(np.hypot(r[0] - t[0], r[1] - t[1]))
-    return float(np.sqrt(np.mean(np.square(esif)))), float(np.sqrt(np.mean(np.square(cv)))), len(esif)
+    return (
+        float(np.sqrt(np.mean(np.square(esif)))),
+        float(np.sqrt(np.mean(np.square(cv)))),
+        len(esif),
+    )
 
 
 def _lens_rms(result: dict[str, Any], truth: dict[str, Any]) -> float:
     from calibration.lens_grid import LensGrid
 
-    mla = result["mla"]
-    fitted = LensGrid(tuple(mla["lens_origin_px"]), mla["lens_pitch_px"],
-                      np.radians(mla["rotation_deg"]))
+    lens = result["mla"]["lens_grid"]
+    fitted = LensGrid(tuple(lens["origin_px"]), lens["pitch_px"], np.radians(lens["rotation_deg"]))
     t = truth["mla"]
     true = LensGrid(tuple(t["lens_origin_px"]), t["lens_pitch_px"], np.radians(t["rotation_deg"]))
     w, h = truth["sensor"]["width"], truth["sensor"]["height"]
@@ -90,47 +94,51 @@ def evaluate(name: str, frames: int = 100) -> list[dict[str, Any]]:
     seconds = time.perf_counter() - t0
     archive = SweepArchive.open(path)
     tq = {f["index"]: f for f in truth["frames"]}
-    p_err = [abs(f["patch_size_px"] - tq[f["index"]]["patch_size_px"])
-             for f in result["frames"] if f.get("patch_size_px") is not None]
+    p_err = [
+        abs(f["patch_size_px"] - tq[f["index"]]["patch_size_px"])
+        for f in result["frames"]
+        if f.get("patch_size_px") is not None
+    ]
     esif_rms, cv_rms, n_corners = _corner_rms(result, truth, archive)
     rows = [
         ("a error", 100 * abs(result["a_mm"] / truth["a_mm"] - 1), "%", 0.05),
         ("b error", 100 * abs(result["b_mm"] / truth["b_mm"] - 1), "%", 0.05),
-        ("focus plane error",
-         abs(result["focus"]["object_distance_mm"] - truth["focus"]["object_distance_mm"]), "mm",
-         1.0),
+        (
+            "focus plane error",
+            abs(result["focus"]["object_distance_mm"] - truth["focus"]["object_distance_mm"]),
+            "mm",
+            1.0,
+        ),
         ("worst p error (all frames)", max(p_err), "px", 0.05),
         (f"corner RMS at focus ESIF (n={n_corners})", esif_rms, "px", 0.05),
         ("corner RMS at focus cv2.cornerSubPix", cv_rms, "px", None),
         ("lens-centre RMS error", _lens_rms(result, truth), "px", 0.02),
-        (f"calibrate {len(result['frames'])} frames {truth['sensor']['width']}x"
-         f"{truth['sensor']['height']}", seconds, "s", 30.0),
+        (
+            f"calibrate {len(result['frames'])} frames {truth['sensor']['width']}x"
+            f"{truth['sensor']['height']}",
+            seconds,
+            "s",
+            30.0,
+        ),
     ]
     out = []
     for label, value, unit, target in rows:
         ok = None if target is None else bool(value <= target)
         if label.startswith("corner RMS at focus ESIF"):
             ok = bool(value <= 0.05 and esif_rms <= cv_rms)
-        out.append({"name": f"{name}: {label}", "value": value, "unit": unit,
-                    "target": target, "ok": ok})
+        out.append(
+            {"name": f"{name}: {label}", "value": value, "unit": unit, "target": target, "ok": ok}
+        )
     return out
 
 
-def run(presets: tuple[str, ...] = ("paper", "rotated", "noisy"), frames: int = 100
-        ) -> list[dict[str, Any]]:
+def run(
+    presets: tuple[str, ...] = ("paper", "rotated", "noisy"), frames: int = 100
+) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for name in presets:
         rows.extend(evaluate(name, frames))
     return rows
-
-
-def print_table(rows: list[dict[str, Any]]) -> None:
-    w = max(len(r["name"]) for r in rows)
-    print(f"{'benchmark'.ljust(w)}  {'value':>10}  unit  {'target':>8}  ok")
-    for r in rows:
-        target = "" if r["target"] is None else f"<= {r['target']:g}"
-        ok = "" if r["ok"] is None else ("yes" if r["ok"] else "NO")
-        print(f"{r['name'].ljust(w)}  {r['value']:10.4f}  {r['unit']:<4}  {target:>8}  {ok}")
 
 
 def main() -> None:
@@ -138,6 +146,8 @@ def main() -> None:
     parser.add_argument("--presets", default="paper,rotated,noisy")
     parser.add_argument("--frames", type=int, default=100)
     args = parser.parse_args()
+    from bench.__main__ import print_table
+
     print_table(run(tuple(args.presets.split(",")), args.frames))
 
 

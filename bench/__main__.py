@@ -1,0 +1,49 @@
+"""Run the benchmarks and print one table: ``python -m bench [names...]``.
+
+Names: simulator, accuracy, mla, render, serial, camera, station (default: all
+that exist). Each module ``bench.bench_<name>`` exposes ``run() -> list[dict]``
+with rows ``name, value, unit, target, ok``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from typing import Any
+
+ALL = ("simulator", "mla", "accuracy", "render", "serial", "camera", "station")
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        print("no benchmark rows")
+        return
+    w = max(len(str(r["name"])) for r in rows)
+    print(f"{'benchmark'.ljust(w)}  {'value':>12}  {'unit':<5} {'target':>10}  ok")
+    print("-" * (w + 40))
+    for r in rows:
+        target = "" if r.get("target") is None else f"{r['target']:g}"
+        ok = "" if r.get("ok") is None else ("yes" if r["ok"] else "NO")
+        print(
+            f"{str(r['name']).ljust(w)}  {float(r['value']):12.4f}  {str(r['unit']):<5} "
+            f"{target:>10}  {ok}"
+        )
+
+
+def main(argv: list[str]) -> int:
+    names = argv or list(ALL)
+    rows: list[dict[str, Any]] = []
+    for name in names:
+        try:
+            module = importlib.import_module(f"bench.bench_{name}")
+        except ModuleNotFoundError:
+            print(f"(no benchmark {name!r})", file=sys.stderr)
+            continue
+        print(f"running {name} ...", file=sys.stderr, flush=True)
+        rows.extend(module.run())
+    print_table(rows)
+    return 0 if all(r.get("ok") is not False for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
