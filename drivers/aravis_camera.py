@@ -151,20 +151,21 @@ def _resolve_ipv4(address: str) -> str | None:
     return str(infos[0][4][0]) if infos else None
 
 
-def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
-    """True if a GigE Vision device answers a GVCP read of its version register.
+def gvcp_read_register(ip: str, address: int, timeout_s: float = 0.5, tries: int = 3) -> int | None:
+    """Read one bootstrap register of the GigE Vision device at ``ip``; None if no answer.
 
-    One unicast READREG command to ``ip``:3956 per try (no broadcast); a device answers
-    reads from any application, even while another one controls it.  Used to tell
-    "camera absent" quickly instead of waiting for Aravis's 2.5 s of GVCP retries.
+    One unicast GVCP READREG command to ``ip``:3956 per try (never a broadcast); devices
+    answer reads from any application, even while another one controls them.  Used to
+    tell "camera absent" or "controlled by someone else" in well under Aravis's 2.5 s of
+    GVCP retries.
     """
     request_id = 0x4C46
-    packet = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, request_id, 0x0000)
+    packet = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, request_id, address)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         try:
             sock.connect((ip, GVCP_PORT))
         except OSError:
-            return False
+            return None
         for _ in range(tries):
             deadline = time.monotonic() + timeout_s / tries
             try:
@@ -173,14 +174,19 @@ def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
                     sock.settimeout(remaining)
                     ack = sock.recv(64)
                     if len(ack) >= 12:
-                        _status, answer, _length, ack_id = struct.unpack(">HHHH", ack[:8])
-                        if answer == 0x0081 and ack_id == request_id:
-                            return True
+                        status, answer, _length, ack_id, value = struct.unpack(">HHHHI", ack[:12])
+                        if answer == 0x0081 and ack_id == request_id and status == 0:
+                            return int(value)
             except ConnectionRefusedError:  # ICMP port unreachable: nothing listens
                 threading.Event().wait(max(0.0, deadline - time.monotonic()))
             except OSError:  # timeout
                 pass
-    return False
+    return None
+
+
+def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
+    """True if a GigE Vision device answers at ``ip`` (see :func:`gvcp_read_register`)."""
+    return gvcp_read_register(ip, 0x0000, timeout_s, tries) is not None
 
 
 def _local_address_for(ip: str) -> str | None:
@@ -630,8 +636,14 @@ class AravisCamera:
                 hint="the host's camera interface is up and in the camera's subnet",
             )
         self._ip = ip
-        if not gvcp_ping(ip, timeout_s=1.0, tries=4):
+        privilege = gvcp_read_register(ip, GVBS_CONTROL_CHANNEL_PRIVILEGE, timeout_s=1.0, tries=4)
+        if privilege is None:
             raise CameraNotFound(f"no GigE Vision camera answers at {ip}", device=self.label)
+        if privilege & 0x3:
+            raise CameraBusy(
+                f"the camera at {ip} answers but another application controls it",
+                device=self.label,
+            )
         try:
             self._device = ar.Aravis.GvDevice.new(
                 ar.Gio.InetAddress.new_from_string(local), ar.Gio.InetAddress.new_from_string(ip)
@@ -776,10 +788,10 @@ class AravisCamera:
             self._disposers.pop(0)
         try:
             self._open_session()
-        except (CameraNotFound, CameraLost) as exc:
+        except (CameraNotFound, CameraLost, CameraBusy) as exc:
             self._lost = True
             raise CameraLost(
-                f"the camera is still not answering ({exc.message})",
+                f"the camera is not available again yet ({exc.message})",
                 device=self.label,
             ) from None
         log.info("%s: reconnected", self.label)
