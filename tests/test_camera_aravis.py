@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from drivers import aravis_camera
-from drivers.camera import Camera, CameraSettings, Frame, Roi, decode_mono
+from drivers.camera import Camera, CameraSettings, Frame, Roi, create_camera, decode_mono
 from drivers.camera_errors import (
     BackendUnavailable,
     CameraBusy,
@@ -159,7 +159,8 @@ def test_missing_pygobject_raises_backend_unavailable(monkeypatch: pytest.Monkey
 
 
 def test_serial_without_address_never_runs_discovery() -> None:
-    cam = aravis_camera.AravisCamera(serial=SERIAL)
+    cam = create_camera("aravis", serial=SERIAL)
+    assert isinstance(cam, aravis_camera.AravisCamera)
     start = time.monotonic()
     with pytest.raises(CameraNotFound) as err:
         cam.open()

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from drivers import harvesters_camera
-from drivers.camera import Camera, CameraSettings, Frame, Roi
+from drivers.camera import Camera, CameraSettings, Frame, Roi, create_camera
 from drivers.camera_errors import (
     BackendUnavailable,
     CameraBusy,
@@ -193,3 +193,15 @@ def test_missing_harvesters_raises_backend_unavailable(monkeypatch: pytest.Monke
     monkeypatch.setattr(harvesters_camera, "_HV", None)
     with pytest.raises(BackendUnavailable):
         HarvestersCamera(TLSIMU, serial=SERIAL).open()
+
+
+def test_create_camera_from_configuration_values() -> None:
+    cam = create_camera("harvesters", cti=TLSIMU, serial=SERIAL)
+    assert isinstance(cam, HarvestersCamera)
+    with cam:
+        frame = cam.grab(timeout_s=2.0)
+        assert np.array_equal(frame.pixels, tlsimu_pattern(frame))
+    with pytest.raises(ValueError, match="cti"):
+        create_camera("harvesters", serial=SERIAL)
+    with pytest.raises(ValueError, match="unknown camera backend"):
+        create_camera("simulated")
