@@ -18,9 +18,10 @@ Grabbing: ``grab`` stops nothing between frames; acquisition runs continuously w
 ``TriggerMode=On``/``TriggerSource=Software`` and each call drops any stale buffer, fires
 ``TriggerSoftware`` and waits for the frame.  A buffer whose status is not ``SUCCESS``
 (missing packets, frame-retention timeout, size mismatch) raises ``IncompleteFrame``.
-When the camera stops answering, ``grab`` raises ``CameraLost`` and the next ``grab``
-reopens it once (bounded by Aravis's GVCP timeouts, about 2.5 s); ``reconnect`` retries
-until a deadline.  Settings are re-applied after a reopen.
+When the camera stops answering (or reboots and drops our control channel), ``grab``
+raises ``CameraLost`` and the next ``grab`` makes one bounded reopen attempt (a camera
+still absent costs a 0.6 s ping); ``reconnect`` retries until a deadline.  The last
+settings are re-applied after a reopen.
 
 Aravis 0.8 GVCP timing is fixed: a command to an absent camera fails after 5 tries of
 500 ms (about 2.5 s), so detecting a lost camera during a grab takes that long.  Opening
