@@ -63,6 +63,45 @@ def _parse_pair(text: str, what: str) -> tuple[float, float]:
 # ---------------------------------------------------------------------------- simulate
 
 
+def _override_optics(preset: Any, args: argparse.Namespace) -> Any:
+    """The preset with the optics given on the command line (focus plane kept unless given)."""
+    from dataclasses import replace
+
+    from calibration.optics import (
+        CameraOptics,
+        main_aperture_for_matching,
+        mla_distance_for_focus,
+    )
+
+    o = preset.camera.optics
+    given = {
+        "F": args.main_focal_mm,
+        "f": args.mla_focal_mm,
+        "D": args.mla_pitch_mm,
+        "b": args.b_mm,
+    }
+    if all(v is None for v in given.values()) and args.focus_mm is None:
+        return preset
+    F = o.F if given["F"] is None else given["F"]
+    f = o.f if given["f"] is None else given["f"]
+    D = o.D if given["D"] is None else given["D"]
+    b = o.b if given["b"] is None else given["b"]
+    u0 = o.u0 if args.focus_mm is None else args.focus_mm
+    try:
+        if not (b > f > 0):
+            raise ValueError(f"b = {b} mm must exceed f = {f} mm (a = 1/(1/f - 1/b) would be <= 0)")
+        if not D > 0:
+            raise ValueError(f"D = {D} mm must be a positive pitch")
+        L = mla_distance_for_focus(u0, F, f, b)
+        optics = CameraOptics(
+            F=F, f=f, D=D, delta=o.delta, b=b, L=L, aperture=main_aperture_for_matching(L, b, D)
+        )
+        camera = replace(preset.camera, optics=optics)
+    except ValueError as exc:
+        raise UserError(f"impossible optics: {exc}") from None
+    return replace(preset, camera=camera)
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from calibration.presets import get_preset, with_sweep
     from calibration.sim_sweep import fit_frame, write_sweep
@@ -84,6 +123,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         changes["step_mm"] = args.step_mm
     if changes:
         preset = with_sweep(preset, **changes)
+    preset = _override_optics(preset, args)
     pp = _parse_pair(args.principal_point, "--principal-point") if args.principal_point else None
     for name in ("width", "height"):
         value = getattr(args, name)
@@ -322,6 +362,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="principal point (px); default keeps both corners in view",
     )
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--main-focal-mm", type=float, default=None, help="override F (mm)")
+    p.add_argument("--mla-focal-mm", type=float, default=None, help="override f (mm)")
+    p.add_argument("--mla-pitch-mm", type=float, default=None, help="override D (mm)")
+    p.add_argument("--b-mm", type=float, default=None, help="override b, MLA to sensor (mm)")
+    p.add_argument(
+        "--focus-mm",
+        type=float,
+        default=None,
+        help="object distance of the focus plane (mm); sets L",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing archive")
     p.set_defaults(func=cmd_simulate)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -16,8 +17,24 @@ FRAMES = 25  # 4 mm steps over the 96 mm sweep keep the test fast
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("sim") / "rotated"
-    code = main(["simulate", str(out), "--preset", "rotated", "--frames", str(FRAMES),
-                 "--step-mm", "4", "--width", "2400", "--height", "800", "--seed", "3"])
+    code = main(
+        [
+            "simulate",
+            str(out),
+            "--preset",
+            "rotated",
+            "--frames",
+            str(FRAMES),
+            "--step-mm",
+            "4",
+            "--width",
+            "2400",
+            "--height",
+            "800",
+            "--seed",
+            "3",
+        ]
+    )
     assert code == 0
     return out
 
@@ -25,8 +42,9 @@ def sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def result(sweep: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("res")
-    code = main(["calibrate", str(sweep), "--out", str(out / "result.json"),
-                 "--plots", str(out / "plots")])
+    code = main(
+        ["calibrate", str(sweep), "--out", str(out / "result.json"), "--plots", str(out / "plots")]
+    )
     assert code == 0
     data = json.loads((out / "result.json").read_text())
     data["_plots"] = sorted(p.name for p in (out / "plots").iterdir())
@@ -52,18 +70,28 @@ def test_calibration_matches_truth_within_twice_the_targets(sweep: Path, result:
     assert abs(result["focus"]["object_distance_mm"] - truth["focus"]["object_distance_mm"]) < 2.0
     assert abs(result["focus"]["rail_mm"] - truth["focus"]["rail_mm"]) < 2.0
     tq = {f["index"]: f for f in truth["frames"]}
-    worst = max(abs(f["patch_size_px"] - tq[f["index"]]["patch_size_px"])
-                for f in result["frames"])
+    worst = max(abs(f["patch_size_px"] - tq[f["index"]]["patch_size_px"]) for f in result["frames"])
     assert worst < 0.1
     assert result["mla"]["lens_pitch_px"] == pytest.approx(truth["mla"]["lens_pitch_px"], rel=1e-6)
-    assert result["mla"]["image_pitch_px"] == pytest.approx(truth["mla"]["image_pitch_px"],
-                                                            rel=2e-4)
+    assert result["mla"]["image_pitch_px"] == pytest.approx(
+        truth["mla"]["image_pitch_px"], rel=2e-4
+    )
     assert result["mla"]["rotation_deg"] == pytest.approx(truth["mla"]["rotation_deg"], abs=0.01)
 
 
 def test_result_json_has_the_documented_keys(result: dict) -> None:
-    for key in ("a_mm", "b_mm", "Q", "patch_size_px", "uncertainty", "focus", "mla", "frames",
-                "estimates", "consistency"):
+    for key in (
+        "a_mm",
+        "b_mm",
+        "Q",
+        "patch_size_px",
+        "uncertainty",
+        "focus",
+        "mla",
+        "frames",
+        "estimates",
+        "consistency",
+    ):
         assert key in result
     for key in ("rail_mm", "object_distance_mm", "uncertainty_mm"):
         assert key in result["focus"]
@@ -77,9 +105,9 @@ def test_result_json_has_the_documented_keys(result: dict) -> None:
     assert result["_plots"] == ["disparity.png", "focus.png"]
 
 
-def test_missing_and_corrupt_frames_are_skipped_and_reported(sweep: Path, tmp_path: Path,
-                                                             capsys: pytest.CaptureFixture[str]
-                                                             ) -> None:
+def test_missing_and_corrupt_frames_are_skipped_and_reported(
+    sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     damaged = tmp_path / "damaged"
     shutil.copytree(sweep, damaged)
     (damaged / "frames" / "0003.png").unlink()
@@ -91,11 +119,31 @@ def test_missing_and_corrupt_frames_are_skipped_and_reported(sweep: Path, tmp_pa
     assert any("skipped" in w for w in data["warnings"])
 
 
-def test_sweep_with_the_corner_never_found(tmp_path: Path,
-                                           capsys: pytest.CaptureFixture[str]) -> None:
+def test_sweep_with_the_corner_never_found(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "blank"
-    assert main(["simulate", str(out), "--preset", "rotated", "--frames", "6", "--step-mm", "15",
-                 "--width", "800", "--height", "800", "--principal-point", "3000,3000"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(out),
+                "--preset",
+                "rotated",
+                "--frames",
+                "6",
+                "--step-mm",
+                "15",
+                "--width",
+                "800",
+                "--height",
+                "800",
+                "--principal-point",
+                "3000,3000",
+            ]
+        )
+        == 0
+    )
     code = main(["calibrate", str(out), "--out", str(tmp_path / "partial.json")])
     err = capsys.readouterr().err
     assert code == 3
@@ -104,18 +152,57 @@ def test_sweep_with_the_corner_never_found(tmp_path: Path,
     assert len(partial["frames"]) == 6
 
 
+def test_focus_outside_the_sweep_says_extend_the_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "far"
+    # rotated focuses at rail 52.37 mm; this sweep covers 70..94 mm only
+    assert (
+        main(
+            [
+                "simulate",
+                str(out),
+                "--preset",
+                "rotated",
+                "--frames",
+                "7",
+                "--start-mm",
+                "70",
+                "--step-mm",
+                "4",
+                "--width",
+                "2400",
+                "--height",
+                "800",
+            ]
+        )
+        == 0
+    )
+    code = main(["calibrate", str(out), "--out", str(tmp_path / "partial.json")])
+    err = capsys.readouterr().err
+    assert code == 4
+    assert "focus plane at the sweep edge" in err and "extend the range" in err
+    partial = json.loads((tmp_path / "partial.json").read_text())
+    assert len(partial["frames"]) == 7 and all(f["Q"] for f in partial["frames"])
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
         (["simulate", "{tmp}/x", "--preset", "nosuch"], "unknown preset 'nosuch'"),
         (["simulate", "{tmp}/x", "--width", "50", "--height", "50"], "smaller than one lens"),
-        (["simulate", "/proc/forbidden/x", "--frames", "1", "--width", "300", "--height", "300"],
-         "cannot write"),
+        (
+            ["simulate", "/proc/forbidden/x", "--frames", "1", "--width", "300", "--height", "300"],
+            "cannot write",
+        ),
         (["calibrate", "{tmp}/does-not-exist"], "no such sweep directory"),
+        (["simulate", "{tmp}/x", "--b-mm", "2.0"], "b = 2.0 mm must exceed f"),
+        (["simulate", "{tmp}/x", "--mla-pitch-mm", "-0.25"], "D = -0.25"),
     ],
 )
-def test_bad_input_gives_one_clear_line(argv: list[str], message: str, tmp_path: Path,
-                                        capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_input_gives_one_clear_line(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code = main([a.replace("{tmp}", str(tmp_path)) for a in argv])
     err = capsys.readouterr().err.strip()
     assert code == 2
@@ -124,8 +211,9 @@ def test_bad_input_gives_one_clear_line(argv: list[str], message: str, tmp_path:
     assert not (tmp_path / "x" / "sweep.json").exists()
 
 
-def test_invalid_manifest_is_reported_with_its_key(sweep: Path, tmp_path: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_invalid_manifest_is_reported_with_its_key(
+    sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     broken = tmp_path / "broken"
     shutil.copytree(sweep, broken)
     manifest = json.loads((broken / "sweep.json").read_text())
@@ -135,3 +223,34 @@ def test_invalid_manifest_is_reported_with_its_key(sweep: Path, tmp_path: Path,
     assert main(["calibrate", str(broken)]) == 2
     err = capsys.readouterr().err
     assert "optics.mla_pitch_mm" in err and "camera.bit_depth" in err
+
+
+def test_calibrated_patch_size_renders_with_fewer_seams(sweep: Path, result: dict) -> None:
+    """Render a fine checkerboard at the calibrated focus plane with the calibrated p."""
+    import numpy as np
+
+    from calibration.board import Board
+    from calibration.lens_grid import LensGrid
+    from calibration.presets import get_preset
+    from calibration.rendering import seam_scan, seamless_patch_px
+    from calibration.sim_sweep import fit_frame
+    from calibration.simulator import render_frame
+
+    cam = fit_frame(get_preset("rotated"), 2400, 800).camera
+    fine = replace(cam, board=Board(square_mm=1.0, reference_gap_mm=0.0))
+    raw = render_frame(fine, object_distance_mm=result["focus"]["object_distance_mm"], seed=9)
+    g = result["mla"]["image_grid"]
+    grid = LensGrid(tuple(g["origin_px"]), g["pitch_px"], np.radians(g["rotation_deg"]))
+
+    def render_p(p: float) -> float:
+        return seamless_patch_px(
+            p,
+            lens_pitch_px=result["mla"]["lens_pitch_px"],
+            image_pitch_px=result["mla"]["image_pitch_px"],
+        )
+
+    p_cal = result["patch_size_px"]
+    designed = 20.0  # the nominal p of a b/a = 0.25 design, 80 px lens pitch
+    sizes = [render_p(p) for p in (p_cal, designed, 0.9 * p_cal, 1.1 * p_cal)]
+    scores = seam_scan(raw, image_grid=grid, patch_sizes_px=sizes)
+    assert scores[0] < min(scores[1:])
