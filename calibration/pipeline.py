@@ -13,7 +13,11 @@ check. :func:`calibrate_archive` does both for an archive on disk.
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
+import sys
 from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -306,11 +310,19 @@ def combine(
         b_guess = b_new
         if converged:
             break
-    joint = global_fit(u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta,
-                       edge_width_px=arr["edge_width_px"])
+    joint = global_fit(
+        u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta, edge_width_px=arr["edge_width_px"]
+    )
     q_total_se = float(np.hypot(q_f_se, dq_du * u_focus_se))
-    esif = paper_estimate(q_f, q_total_se, f=f, D=D, delta=delta,
-                          focus_object_distance_mm=u_focus, focus_se_mm=u_focus_se)
+    esif = paper_estimate(
+        q_f,
+        q_total_se,
+        f=f,
+        D=D,
+        delta=delta,
+        focus_object_distance_mm=u_focus,
+        focus_se_mm=u_focus_se,
+    )
     paper = paper_focus(u, La)
     paper_est: Estimate | None = None
     if paper is not None:
@@ -420,40 +432,86 @@ def _consistency(a: Estimate, b: Estimate) -> dict[str, Any]:
     }
 
 
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(root: str, analyzer: FrameAnalyzer) -> None:
+    _WORKER["archive"] = SweepArchive.open(root)
+    _WORKER["analyzer"] = analyzer
+
+
+def _worker_analyze(index: int, rail_mm: float) -> FrameSummary | str:
+    """Decode and analyse one frame in a worker; the error text when it cannot be read."""
+    try:
+        image = _WORKER["archive"].frame(index)
+    except ImageError as exc:
+        return str(exc)
+    return _WORKER["analyzer"].analyze(index, rail_mm, image)
+
+
+def default_workers() -> int:
+    """Analysis processes: one per core, at most 4."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
 def calibrate_archive(
     path: str | Path,
     *,
     options: CalibrationOptions | None = None,
     progress: Callable[[int, int], None] | None = None,
+    workers: int | None = None,
 ) -> CalibrationResult:
-    """Calibrate an ``lfcal-sweep/1`` archive; unreadable frames are skipped and reported."""
+    """Calibrate an ``lfcal-sweep/1`` archive; unreadable frames are skipped and reported.
+
+    Frames are decoded and analysed in ``workers`` processes (default: one per
+    core, at most 4; 1 analyses in this process).
+    """
     archive = SweepArchive.open(path)
     geometry = SweepGeometry.from_manifest(archive.manifest)
     try:
         white = archive.white()
     except ImageError as exc:
         raise CalibrationError(f"white image unusable: {exc}") from exc
-    analyzer = FrameAnalyzer.from_white(geometry, white, options)
+    try:
+        analyzer = FrameAnalyzer.from_white(geometry, white, options)
+    except ValueError as exc:
+        raise CalibrationError(f"no microlens grid in the white image: {exc}") from exc
     summaries: list[FrameSummary] = []
     skipped: dict[int, str] = {}
     entries = archive.manifest.frames
-    for n, entry in enumerate(entries):
-        try:
-            image = archive.frame(entry.index)
-        except ImageError as exc:
-            skipped[entry.index] = str(exc)
-            continue
-        summaries.append(analyzer.analyze(entry.index, entry.rail_mm, image))
+    n_workers = default_workers() if workers is None else max(1, workers)
+
+    def collect(entry_index: int, outcome: FrameSummary | str, done: int) -> None:
+        if isinstance(outcome, str):
+            skipped[entry_index] = outcome
+        else:
+            summaries.append(outcome)
         if progress is not None:
-            progress(n + 1, len(entries))
+            progress(done, len(entries))
+
+    if n_workers == 1 or len(entries) < 4:
+        _worker_init(str(archive.root), analyzer)
+        for n, entry in enumerate(entries):
+            collect(entry.index, _worker_analyze(entry.index, entry.rail_mm), n + 1)
+    else:
+        ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
+        with ProcessPoolExecutor(
+            n_workers,
+            mp_context=ctx,
+            initializer=_worker_init,
+            initargs=(str(archive.root), analyzer),
+        ) as pool:
+            futures = {pool.submit(_worker_analyze, e.index, e.rail_mm): e.index for e in entries}
+            for n, fut in enumerate(as_completed(futures)):
+                collect(futures[fut], fut.result(), n + 1)
     try:
         result = combine(summaries, geometry, analyzer.grid, options=options)
     except CalibrationError as exc:
         if exc.partial is not None:
-            exc.partial["skipped_frames"] = {str(k): v for k, v in skipped.items()}
+            exc.partial["skipped_frames"] = {str(k): v for k, v in sorted(skipped.items())}
         raise
     if skipped:
-        result.data["skipped_frames"] = {str(k): v for k, v in skipped.items()}
+        result.data["skipped_frames"] = {str(k): v for k, v in sorted(skipped.items())}
         result.data["warnings"].append(
             f"{len(skipped)} frame(s) could not be read and were skipped"
         )
