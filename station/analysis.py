@@ -1,0 +1,281 @@
+"""Streaming frame analysis in worker processes, so acquisition never waits for it.
+
+:class:`AnalysisPool` is one ``ProcessPoolExecutor`` (``spawn`` start method: the
+station process has threads, so it never forks) kept for the life of the
+orchestrator. A job opens an :class:`AnalysisSession` with its
+:class:`calibration.pipeline.FrameAnalyzer` (fitted once on the white image;
+it pickles to a few kB and is cached in each worker per job), submits each
+frame **by file name** as soon as it is in the archive -- the worker reads the
+PNG itself, so no frame crosses the process boundary -- and gets a
+:class:`calibration.pipeline.FrameSummary` back through a callback. At the end
+:meth:`AnalysisSession.wait` returns every summary; a worker that died (or a
+frame that failed) is analysed again in the calling process, so a result is
+never silently missing a frame.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import pickle
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+from calibration.archive import read_image
+from calibration.pipeline import FrameAnalyzer, FrameSummary
+
+# --------------------------------------------------------------------------- worker side
+
+_CACHE: dict[str, FrameAnalyzer] = {}
+
+
+def _warm_up() -> int:
+    """Runs in a new worker: imports are done by then; returns the worker's pid."""
+    return os.getpid()
+
+
+def _analyze_file(
+    key: str,
+    blob: bytes,
+    index: int,
+    rail_mm: float,
+    path: str,
+    shape: tuple[int, int],
+    bit_depth: int,
+) -> FrameSummary:
+    """Worker: analyse the frame file ``path`` taken at ``rail_mm`` (mm)."""
+    analyzer = _CACHE.get(key)
+    if analyzer is None:
+        _CACHE.clear()  # one job at a time: drop the previous job's analyzer
+        analyzer = pickle.loads(blob)
+        _CACHE[key] = analyzer
+    image = read_image(path, expected_shape=shape, bit_depth=bit_depth)
+    return analyzer.analyze(index, rail_mm, image)
+
+
+# --------------------------------------------------------------------------- summaries
+
+_FLOAT_FIELDS = (
+    "rail_mm",
+    "object_distance_mm",
+    "Q",
+    "Q_se",
+    "Q_eq3",
+    "Ls_px",
+    "Lr_px",
+    "edge_width_px",
+)
+
+
+def summary_from_dict(data: dict[str, Any]) -> FrameSummary:
+    """Rebuild a :class:`FrameSummary` from its ``to_dict()`` (JSON ``null`` -> NaN)."""
+    values = {k: v for k, v in data.items() if k in FrameSummary.__dataclass_fields__}
+    for key in _FLOAT_FIELDS:
+        if values.get(key) is None and key in values:
+            values[key] = math.nan
+    return FrameSummary(**values)
+
+
+# --------------------------------------------------------------------------- pool
+
+
+def default_workers() -> int:
+    """Analysis processes: one core is left to acquisition, at most 4."""
+    return max(1, min(4, (os.cpu_count() or 2) - 1))
+
+
+class AnalysisPool:
+    """The worker processes of one orchestrator (started lazily, restarted if broken).
+
+    Args:
+        workers: number of processes (None: :func:`default_workers`).
+    """
+
+    def __init__(self, workers: int | None = None) -> None:
+        self.workers = workers or default_workers()
+        self._lock = threading.Lock()
+        self._executor: ProcessPoolExecutor | None = None
+
+    def executor(self) -> ProcessPoolExecutor:
+        """The executor, started (and warmed up in the background) on first use."""
+        with self._lock:
+            if self._executor is None:
+                ctx = multiprocessing.get_context("spawn")
+                self._executor = ProcessPoolExecutor(self.workers, mp_context=ctx)
+                for _ in range(self.workers):
+                    self._executor.submit(_warm_up)
+            return self._executor
+
+    def start(self) -> None:
+        """Start the processes now (they import the calibration core meanwhile)."""
+        self.executor()
+
+    def reset(self) -> None:
+        """Drop a broken executor; the next use starts a new one."""
+        with self._lock:
+            executor, self._executor = self._executor, None
+        if executor is not None:
+            executor.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        """Stop the processes (pending work is cancelled)."""
+        with self._lock:
+            executor, self._executor = self._executor, None
+        if executor is not None:
+            executor.shutdown(wait=True, cancel_futures=True)
+
+    def session(
+        self,
+        key: str,
+        analyzer: FrameAnalyzer,
+        *,
+        shape: tuple[int, int],
+        bit_depth: int,
+        on_summary: Callable[[FrameSummary], None] | None = None,
+    ) -> AnalysisSession:
+        """A new session for one job run (``key`` must be unique per run)."""
+        return AnalysisSession(self, key, analyzer, shape, bit_depth, on_summary)
+
+
+class AnalysisSession:
+    """The frames of one job run being analysed (see :meth:`AnalysisPool.session`)."""
+
+    def __init__(
+        self,
+        pool: AnalysisPool,
+        key: str,
+        analyzer: FrameAnalyzer,
+        shape: tuple[int, int],
+        bit_depth: int,
+        on_summary: Callable[[FrameSummary], None] | None,
+    ) -> None:
+        self._pool = pool
+        self._key = key
+        self._analyzer = analyzer
+        self._blob = pickle.dumps(analyzer)
+        self._shape = shape
+        self._bit_depth = bit_depth
+        self._on_summary = on_summary
+        self._lock = threading.Lock()
+        self._done: dict[int, FrameSummary] = {}
+        self._pending: dict[int, tuple[Future[FrameSummary], float, str]] = {}
+        self._all_done = threading.Condition(self._lock)
+
+    @property
+    def analyzer(self) -> FrameAnalyzer:
+        """The analyzer (its ``grid`` is needed by :func:`calibration.pipeline.combine`)."""
+        return self._analyzer
+
+    def add_known(self, summary: FrameSummary) -> None:
+        """A summary already known (stored by an earlier run of the job)."""
+        with self._lock:
+            self._done[summary.index] = summary
+
+    def submit(self, index: int, rail_mm: float, path: Path) -> None:
+        """Analyse frame ``index`` (file ``path``, rail position ``rail_mm`` mm) in a worker."""
+        try:
+            future = self._pool.executor().submit(
+                _analyze_file,
+                self._key,
+                self._blob,
+                index,
+                rail_mm,
+                str(path),
+                self._shape,
+                self._bit_depth,
+            )
+        except (BrokenProcessPool, RuntimeError):
+            self._pool.reset()
+            future = Future()
+            future.set_exception(BrokenProcessPool("analysis pool unavailable"))
+        with self._lock:
+            self._pending[index] = (future, rail_mm, str(path))
+        future.add_done_callback(lambda f, i=index: self._finished(i, f))
+
+    def _finished(self, index: int, future: Future[FrameSummary]) -> None:
+        if future.cancelled() or future.exception() is not None:
+            with self._lock:
+                self._all_done.notify_all()
+            return  # analysed again in wait()
+        summary = future.result()
+        with self._lock:
+            if index in self._done:
+                return
+            self._done[index] = summary
+            self._pending.pop(index, None)
+            self._all_done.notify_all()
+        if self._on_summary is not None:
+            self._on_summary(summary)
+
+    def done_count(self) -> int:
+        """Frames analysed so far."""
+        with self._lock:
+            return len(self._done)
+
+    def wait(self, timeout_s: float | None = None) -> dict[int, FrameSummary]:
+        """Every summary (index -> summary), waiting for the workers.
+
+        Frames whose analysis failed, whose worker died, or that are still
+        unfinished after ``timeout_s`` seconds are analysed here, in this process.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        with self._lock:
+            while any(not f.done() for f, _, _ in self._pending.values()):
+                left = 1.0 if deadline is None else deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._all_done.wait(min(left, 1.0))
+            leftovers = sorted(self._pending.items())
+        for index, (future, rail_mm, path) in leftovers:
+            with self._lock:
+                if index in self._done:
+                    continue
+            error = None
+            if future.done() and not future.cancelled():
+                error = future.exception()
+            else:
+                future.cancel()
+            if future.done() and not future.cancelled() and error is None:
+                summary = future.result()
+            else:
+                if isinstance(error, BrokenProcessPool):
+                    self._pool.reset()
+                summary = self._local(index, rail_mm, path)
+            with self._lock:
+                if index in self._done:
+                    continue
+                self._done[index] = summary
+                self._pending.pop(index, None)
+            if self._on_summary is not None:
+                self._on_summary(summary)
+        with self._lock:
+            return dict(self._done)
+
+    def _local(self, index: int, rail_mm: float, path: str) -> FrameSummary:
+        try:
+            image = read_image(path, expected_shape=self._shape, bit_depth=self._bit_depth)
+            return self._analyzer.analyze(index, rail_mm, image)
+        except Exception as exc:  # noqa: BLE001 - an analysis failure is a frame's error
+            geometry = self._analyzer.geometry
+            return FrameSummary(
+                index=index,
+                rail_mm=rail_mm,
+                object_distance_mm=geometry.object_distance_mm(rail_mm),
+                error=f"analysis failed: {exc}",
+            )
+
+    def cancel(self) -> None:
+        """Cancel the frames not started yet (the job stops without a result)."""
+        with self._lock:
+            futures = [f for f, _, _ in self._pending.values()]
+        for f in futures:
+            f.cancel()
+
+
+__all__ = ["AnalysisPool", "AnalysisSession", "default_workers", "summary_from_dict"]

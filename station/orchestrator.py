@@ -1,0 +1,818 @@
+"""The station orchestrator: the job queue, the one hardware worker, and the API.
+
+:class:`Orchestrator` is what the web layer and ``lfcal sweep`` use::
+
+    station = Orchestrator(load_config("config/simulated.toml")).start()
+    job = station.submit({"start_mm": 0, "stop_mm": 99, "step_mm": 1})
+    with station.subscribe(job.id) as events:        # step / analysis / state / phase
+        ...
+    station.wait_for(job.id, {JobState.SUCCEEDED, JobState.FAILED}, timeout_s=600)
+    station.result(job.id)                            # the calibration (JSON object)
+    station.close()
+
+Threads: **one hardware worker** owns the devices (opens them, runs one job at a
+time in submission order, closes them); one archive-writer thread per running
+job; the analysis runs in worker processes. Every public method is thread-safe
+and returns quickly: status comes from memory for the active job and from the
+SQLite store otherwise.
+
+Pause and cancel of the active job are *requests*: the job changes state at
+the next step boundary (the rail is stopped and every captured frame written
+first); :attr:`JobStatus.pause_requested` / ``cancel_requested`` show a pending
+request. A paused job keeps the hardware worker (later jobs wait) until it is
+resumed or cancelled. A queued or interrupted job is cancelled at once.
+``resume`` continues a paused job, or re-queues an interrupted or failed one,
+which then continues from its first missing frame.
+
+Start-up (:meth:`Orchestrator.start`): an exclusive lock on the database (one
+station process per database; the lock dies with the process), then every job
+found ``running`` or ``paused`` -- the previous process died under it --
+has its frames verified against the stored checksums
+(:func:`station.recovery.reconcile`) and becomes ``interrupted``; queued jobs
+are run in order.
+"""
+
+from __future__ import annotations
+
+import collections
+import fcntl
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from calibration.archive import frame_file_name
+from drivers.errors import DeviceError
+from station.analysis import AnalysisPool
+from station.config import StationConfig
+from station.events import EventHub, JobEvent, LiveProgress, Subscription
+from station.recovery import VerifyReport, reconcile
+from station.runner import JobControl, Outcome, RunContext, StepTiming, SweepRun
+from station.store import (
+    ACTIVE_STATES,
+    InvalidTransition,
+    JobRecord,
+    JobState,
+    JobStore,
+    StepRecord,
+    Transition,
+)
+from station.sweep import SweepPlan, SweepRequest, plan_sweep
+
+FINAL_STATES = frozenset(
+    {JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED}
+)
+"""States in which a job is not (or no longer) being worked on."""
+
+
+class StationBusy(RuntimeError):
+    """Another station process holds the database (one station per database)."""
+
+
+class ResultNotReady(RuntimeError):
+    """The job has no calibration result (yet): the web layer answers 409.
+
+    Attributes:
+        job_id: the job.
+        state: its state.
+    """
+
+    def __init__(self, job_id: int, state: JobState, why: str) -> None:
+        self.job_id = job_id
+        self.state = state
+        super().__init__(f"job {job_id} is {state.value}: {why}")
+
+
+class FrameNotFound(KeyError):
+    """The job has no recorded frame with this index (the web layer answers 404)."""
+
+    def __init__(self, job_id: int, index: int) -> None:
+        self.job_id = job_id
+        self.index = index
+        super().__init__(f"job {job_id} has no recorded frame {index}")
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+@dataclass(frozen=True)
+class JobStatus:
+    """What a client sees of a job (JSON-ready through :meth:`to_dict`).
+
+    Attributes:
+        id, state, created_at, updated_at, archive_dir, last_error: from the store.
+        request: the validated sweep (:class:`station.sweep.SweepPlan` as a dict).
+        frames_done: frames written and recorded.
+        frames_total: frames of the sweep.
+        frames_analysed: frames analysed (active job only; else None).
+        phase: what the active job is doing (``preparing``, ``homing``, ``white``,
+            ``aligning``, ``sweeping``, ``paused``, ``calibrating``), else None.
+        rail_mm: last read-back rail position of the active job (mm), else None.
+        eta_s: seconds until the last frame (active job), else None.
+        pause_requested, cancel_requested: a request waiting for the next step boundary.
+        has_result: a calibration result (or a failed calibration's partial result) is stored.
+        recent_fault: the last fault the active job recovered from, else None.
+    """
+
+    id: int
+    state: JobState
+    created_at: float
+    updated_at: float
+    request: dict[str, Any]
+    archive_dir: str
+    frames_done: int
+    frames_total: int
+    last_error: str | None
+    has_result: bool
+    frames_analysed: int | None = None
+    phase: str | None = None
+    rail_mm: float | None = None
+    eta_s: float | None = None
+    pause_requested: bool = False
+    cancel_requested: bool = False
+    recent_fault: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (``state`` as its string)."""
+        out = dict(self.__dict__)
+        out["state"] = self.state.value
+        return out
+
+
+@dataclass
+class _Active:
+    job_id: int
+    control: JobControl
+    progress: LiveProgress
+
+
+@dataclass
+class _DevicesState:
+    devices: Any | None = None
+    error: str | None = None
+    described: dict[str, Any] = field(default_factory=dict)
+
+
+class Orchestrator:
+    """The station (see the module docstring).
+
+    Args:
+        config: the station configuration (``storage`` gives the database and data dir).
+        devices_factory: opens the devices (default:
+            ``station.devices.open_devices(config, emulator_speedup=...)``).
+        store: a job store (default: ``config.storage.database``).
+        analysis_workers: analysis processes (None: cores - 1, at most 4; 0: no
+            analysis pool -- jobs can only acquire, ``calibrate`` is ignored).
+        emulator_speedup: emulated stages move this many times faster (simulation).
+        run_queued: run jobs found queued in the database at start-up (the CLI
+            passes False: it runs only what it submits).
+        open_devices_at_start: open the devices as soon as the worker starts
+            (else at the first job).
+    """
+
+    def __init__(
+        self,
+        config: StationConfig,
+        *,
+        devices_factory: Callable[[], Any] | None = None,
+        store: JobStore | None = None,
+        analysis_workers: int | None = None,
+        emulator_speedup: float = 1.0,
+        run_queued: bool = True,
+        open_devices_at_start: bool = True,
+    ) -> None:
+        self.config = config
+        self.data_dir = Path(config.storage.data_dir)
+        self._db_path = Path(config.storage.database)
+        self._store = store
+        self._own_store = store is None
+        if devices_factory is None:
+
+            def devices_factory() -> Any:
+                from station.devices import open_devices
+
+                return open_devices(config, emulator_speedup=emulator_speedup)
+
+        self._factory = devices_factory
+        self._pool = AnalysisPool(analysis_workers) if analysis_workers != 0 else None
+        self._run_queued = run_queued
+        self._open_at_start = open_devices_at_start
+        self.hub = EventHub()
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self._queue: collections.deque[int] = collections.deque()
+        self._active: _Active | None = None
+        self._progress_lock = threading.Lock()
+        self._hw_lock = threading.Lock()
+        self._devices = _DevicesState()
+        self._timings: dict[int, list[StepTiming]] = {}
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._lock_fd: int | None = None
+        self._pp_cache: dict[str, tuple[float, float]] = {}
+        self._exposure_limits: tuple[float, float] | None = None
+        self._rail_limits: tuple[float, float] | None = None
+        #: Start-up verification of the jobs found running or paused (job id -> report).
+        self.recovery_reports: dict[int, VerifyReport] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def store(self) -> JobStore:
+        """The job store (opened by :meth:`start`)."""
+        if self._store is None:
+            raise RuntimeError("the orchestrator is not started")
+        return self._store
+
+    def start(self) -> Orchestrator:
+        """Lock the database, recover interrupted jobs, start the hardware worker."""
+        if self._thread is not None:
+            return self
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self._take_lock()
+        try:
+            if self._store is None:
+                self._store = JobStore(self._db_path)
+            self._recover()
+            if self._run_queued:
+                for job in self._store.list_jobs(states={JobState.QUEUED}):
+                    self._queue.append(job.id)
+        except BaseException:
+            self._release_lock()
+            raise
+        self._thread = threading.Thread(target=self._worker, name="hardware-worker", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout_s: float = 120.0) -> None:
+        """Stop: the active job stops at its next step boundary (``interrupted``),
+        the devices are closed, the analysis processes stopped (idempotent)."""
+        with self._lock:
+            self._stopping = True
+            active = self._active
+            self._changed.notify_all()
+        if active is not None:
+            active.control.request_shutdown()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        if self._pool is not None:
+            self._pool.close()
+        self._close_devices()
+        if self._own_store and self._store is not None:
+            self._store.close()
+        self._release_lock()
+
+    def __enter__(self) -> Orchestrator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _take_lock(self) -> None:
+        path = self._db_path.with_name(self._db_path.name + ".lock")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+            except OSError:
+                holder = "?"
+            os.close(fd)
+            raise StationBusy(
+                f"another station process (pid {holder or '?'}) is using the job database "
+                f"{self._db_path}; stop it, or use another [storage] database"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
+
+    def _release_lock(self) -> None:
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_UN)
+            finally:
+                os.close(fd)
+
+    def _recover(self) -> None:
+        store = self.store
+        for job in store.list_jobs(states=set(ACTIVE_STATES)):
+            try:
+                report = reconcile(store, job.id, Path(job.archive_dir))
+                self.recovery_reports[job.id] = report
+                summary = report.summary(job.frames_total)
+            except Exception as exc:  # noqa: BLE001 - the job must still become interrupted
+                summary = f"its archive could not be verified: {exc}"
+            reason = (
+                f"the station process ended while the job was {job.state.value} "
+                f"(found at start-up); {summary}"
+            )
+            store.transition(job.id, JobState.INTERRUPTED, reason, last_error=reason)
+
+    # ------------------------------------------------------------------ submit / control
+
+    def validate(self, request: SweepRequest | Mapping[str, Any] | None) -> SweepPlan:
+        """Check a request without submitting it (raises :class:`station.sweep.RequestInvalid`)."""
+        return plan_sweep(
+            dict(request) if isinstance(request, Mapping) else request,
+            self.config,
+            rail_limits_mm=self._rail_limits,
+            exposure_limits_us=self._exposure_limits,
+        )
+
+    def submit(
+        self,
+        request: SweepRequest | Mapping[str, Any] | None = None,
+        *,
+        idempotency_key: str | None = None,
+    ) -> JobStatus:
+        """Validate and queue a sweep; returns the (new or, for a repeated
+        ``idempotency_key`` with the same request, existing) job.
+
+        Raises :class:`station.sweep.RequestInvalid` (422) or
+        :class:`station.store.IdempotencyConflict` (409).
+        """
+        plan = self.validate(request)
+        if plan.white_from_job is not None:
+            self.store.get_job(plan.white_from_job)  # JobNotFound if unknown
+        with self._lock:
+            if self._stopping:
+                raise RuntimeError("the station is shutting down")
+            job, created = self.store.create_job(
+                plan.to_dict(),
+                archive_root=self.data_dir,
+                frames_total=plan.frames,
+                idempotency_key=idempotency_key,
+            )
+            if created:
+                self._queue.append(job.id)
+                self._changed.notify_all()
+        if created:
+            self._publish_state(job.id, JobState.QUEUED, None, "submitted")
+        return self.status(job.id)
+
+    def pause(self, job_id: int, reason: str = "paused by the operator") -> JobStatus:
+        """Ask the running job to pause at the next step boundary (409 unless running)."""
+        with self._lock:
+            job = self.store.get_job(job_id)
+            active = self._active if self._active and self._active.job_id == job_id else None
+            if job.state is not JobState.RUNNING or active is None:
+                if job.state is JobState.PAUSED:
+                    return self.status(job_id)
+                raise InvalidTransition(job_id, job.state, JobState.PAUSED, "pause")
+            active.control.request_pause(reason)
+            with self._progress_lock:
+                active.progress.pause_requested = True
+        return self.status(job_id)
+
+    def resume(self, job_id: int, reason: str = "resumed by the operator") -> JobStatus:
+        """Resume a paused job, or re-queue an interrupted or failed one (409 otherwise)."""
+        with self._lock:
+            job = self.store.get_job(job_id)
+            active = self._active if self._active and self._active.job_id == job_id else None
+            if active is not None and job.state in ACTIVE_STATES:
+                active.control.request_resume(reason)
+                with self._progress_lock:
+                    active.progress.pause_requested = False
+                return self.status(job_id)
+            if job.state in (JobState.INTERRUPTED, JobState.FAILED):
+                self.store.transition(job_id, JobState.QUEUED, f"{reason}: queued again")
+                self._queue.append(job_id)
+                self._changed.notify_all()
+            else:
+                raise InvalidTransition(job_id, job.state, JobState.RUNNING, "resume")
+        self._publish_state(job_id, JobState.QUEUED, job.state, f"{reason}: queued again")
+        return self.status(job_id)
+
+    def cancel(self, job_id: int, reason: str = "cancelled by the operator") -> JobStatus:
+        """Cancel a job: queued or interrupted at once, running or paused at the next
+        step boundary (every captured frame is kept). 409 for a finished job."""
+        with self._lock:
+            job = self.store.get_job(job_id)
+            active = self._active if self._active and self._active.job_id == job_id else None
+            if active is not None and job.state in ACTIVE_STATES:
+                active.control.request_cancel(reason)
+                with self._progress_lock:
+                    active.progress.cancel_requested = True
+                return self.status(job_id)
+            if job.state not in (JobState.QUEUED, JobState.INTERRUPTED):
+                raise InvalidTransition(job_id, job.state, JobState.CANCELLED, "cancel")
+            self.store.transition(job_id, JobState.CANCELLED, reason)
+            if job_id in self._queue:
+                self._queue.remove(job_id)
+            self._changed.notify_all()
+        self._publish_state(job_id, JobState.CANCELLED, job.state, reason)
+        return self.status(job_id)
+
+    # ------------------------------------------------------------------ queries
+
+    def status(self, job_id: int) -> JobStatus:
+        """The job's state and progress (:class:`station.store.JobNotFound` if unknown)."""
+        job = self.store.get_job(job_id)
+        with self._lock:
+            active = self._active if self._active and self._active.job_id == job_id else None
+        if active is None or job.state not in ACTIVE_STATES:
+            return self._status_of(job, self.store.step_count(job_id))
+        with self._progress_lock:
+            p = active.progress
+            return self._status_of(
+                job,
+                p.frames_done,
+                frames_analysed=p.frames_analysed,
+                phase=p.phase,
+                rail_mm=p.rail_mm,
+                eta_s=p.eta_s(),
+                pause_requested=p.pause_requested,
+                cancel_requested=p.cancel_requested,
+                recent_fault=p.last_error,
+            )
+
+    @staticmethod
+    def _status_of(job: JobRecord, frames_done: int, **live: Any) -> JobStatus:
+        return JobStatus(
+            id=job.id,
+            state=job.state,
+            created_at=job.created_at,
+            updated_at=job.updated_at,
+            request=job.request,
+            archive_dir=str(job.archive_dir),
+            frames_done=frames_done,
+            frames_total=job.frames_total,
+            last_error=job.last_error,
+            has_result=job.result is not None,
+            **live,
+        )
+
+    def jobs(self, states: Iterable[JobState] | None = None) -> list[JobStatus]:
+        """Every job (oldest first), optionally only those in ``states``."""
+        records = self.store.list_jobs(states=set(states) if states else None)
+        return [self.status(job.id) for job in records]
+
+    def record(self, job_id: int) -> JobRecord:
+        """The job's stored row."""
+        return self.store.get_job(job_id)
+
+    def transitions(self, job_id: int) -> list[Transition]:
+        """Every state change of the job with its time and reason."""
+        self.store.get_job(job_id)
+        return self.store.transitions(job_id)
+
+    def steps(self, job_id: int) -> list[StepRecord]:
+        """The job's recorded steps in index order."""
+        self.store.get_job(job_id)
+        return self.store.steps(job_id)
+
+    def result(self, job_id: int) -> dict[str, Any]:
+        """The calibration result (JSON object) of a succeeded job.
+
+        Raises :class:`ResultNotReady` (409) while the job runs, or when it ended
+        without a result (its ``last_error`` says why; a failed calibration's
+        partial result is in :meth:`record`).
+        """
+        job = self.store.get_job(job_id)
+        if job.state is JobState.SUCCEEDED and job.result is not None:
+            return job.result
+        if job.state is JobState.SUCCEEDED:
+            raise ResultNotReady(
+                job_id, job.state, "the job only acquired frames (calibrate false)"
+            )
+        if job.state in (JobState.QUEUED, JobState.RUNNING, JobState.PAUSED):
+            raise ResultNotReady(job_id, job.state, "the calibration is not finished")
+        raise ResultNotReady(job_id, job.state, job.last_error or "no result")
+
+    def archive_dir(self, job_id: int) -> Path:
+        """The job's ``lfcal-sweep/1`` directory (it may not exist before the job starts)."""
+        return Path(self.store.get_job(job_id).archive_dir)
+
+    def frame_path(self, job_id: int, index: int) -> Path:
+        """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
+        job = self.store.get_job(job_id)
+        step = self.store.step(job_id, index)
+        if step is None:
+            raise FrameNotFound(job_id, index)
+        return Path(job.archive_dir) / (step.file or frame_file_name(index))
+
+    def step_timings(self, job_id: int) -> list[StepTiming]:
+        """Hardware-thread timings of the steps this process ran for the job."""
+        with self._lock:
+            return list(self._timings.get(job_id, []))
+
+    # ------------------------------------------------------------------ events
+
+    def subscribe(self, job_id: int | None = None) -> Subscription:
+        """Live events of one job (or all); combine with :meth:`replay` for SSE."""
+        return self.hub.subscribe(job_id)
+
+    def add_listener(self, callback: Callable[[JobEvent], None]) -> None:
+        """Call ``callback(event)`` for every event, in the publishing thread (must not block)."""
+        self.hub.add_callback(callback)
+
+    def remove_listener(self, callback: Callable[[JobEvent], None]) -> None:
+        self.hub.remove_callback(callback)
+
+    def replay(self, job_id: int, after: int | None = None) -> list[JobEvent]:
+        """``step`` events of the recorded steps with index > ``after`` (from the store,
+        so they survive restarts), each with the frame's analysis ``summary`` when
+        known, then one ``state`` event with the job's current state.
+
+        SSE recipe: subscribe first, then replay from Last-Event-ID, then forward
+        live events, skipping ``step`` events whose id was already replayed.
+        """
+        job = self.store.get_job(job_id)
+        events = []
+        total = job.frames_total
+        steps = self.store.steps(job_id)
+        done = 0
+        for step in steps:
+            done += 1
+            if after is not None and step.index <= after:
+                continue
+            data: dict[str, Any] = {
+                "index": step.index,
+                "commanded_mm": step.commanded_mm,
+                "actual_mm": step.actual_mm,
+                "file": step.file,
+                "sha256": step.sha256,
+                "frames_done": done,
+                "frames_total": total,
+                "replayed": True,
+            }
+            if step.summary is not None:
+                from station.analysis import summary_from_dict
+                from station.events import analysis_payload
+
+                data["summary"] = analysis_payload(
+                    summary_from_dict(step.summary), self.config.board.reference_gap_mm
+                )
+            events.append(JobEvent(job_id, "step", step.index, data, at=step.written_at))
+        events.append(
+            JobEvent(
+                job_id,
+                "state",
+                None,
+                {
+                    "state": job.state.value,
+                    "from": None,
+                    "reason": "current state",
+                    "last_error": job.last_error,
+                },
+                at=job.updated_at,
+            )
+        )
+        return events
+
+    def wait_for(self, job_id: int, states: Iterable[JobState], timeout_s: float) -> JobStatus:
+        """Block until the job is in one of ``states``; ``TimeoutError`` after ``timeout_s``."""
+        wanted = set(states)
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                job = self.store.get_job(job_id)
+                if job.state in wanted:
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(
+                        f"job {job_id} is still {job.state.value} after {timeout_s:g} s "
+                        f"(waiting for {', '.join(sorted(s.value for s in wanted))})"
+                    )
+                self._changed.wait(min(left, 1.0))
+        return self.status(job_id)
+
+    def wait_for_frames(self, job_id: int, count: int, timeout_s: float) -> JobStatus:
+        """Block until at least ``count`` frames are recorded (or the job stopped)."""
+        deadline = time.monotonic() + timeout_s
+        with self.subscribe(job_id) as sub:
+            while True:
+                status = self.status(job_id)
+                if status.frames_done >= count:
+                    return status
+                if status.state not in (JobState.QUEUED, *ACTIVE_STATES):
+                    raise RuntimeError(
+                        f"job {job_id} is {status.state.value} with {status.frames_done} "
+                        f"frames: {status.last_error}"
+                    )
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(
+                        f"job {job_id} has {status.frames_done} of {count} frames after "
+                        f"{timeout_s:g} s"
+                    )
+                sub.get(min(left, 1.0))
+
+    # ------------------------------------------------------------------ devices
+
+    @property
+    def devices(self) -> Any | None:
+        """The open ``StationDevices`` (None when not open). Use only while no job runs."""
+        return self._devices.devices
+
+    def devices_info(self) -> dict[str, Any]:
+        """Connection, identity, position and homed state of every device (JSON-ready).
+
+        While a job runs the devices belong to the hardware worker: the last
+        description is returned with ``busy: true`` and the live rail position.
+        """
+        state = self._devices
+        if not self._hw_lock.acquire(blocking=False):
+            with self._lock:
+                active = self._active
+            out = dict(state.described)
+            out.update(connected=state.devices is not None, busy=True)
+            if active is not None:
+                with self._progress_lock:
+                    out["active_job"] = active.job_id
+                    out["rail_mm"] = active.progress.rail_mm
+            return out
+        try:
+            if state.devices is None:
+                return {"connected": False, "busy": False, "error": state.error}
+            try:
+                state.described = state.devices.describe()
+            except DeviceError as exc:
+                return {"connected": True, "busy": False, "error": str(exc)}
+            return dict(state.described, connected=True, busy=False)
+        finally:
+            self._hw_lock.release()
+
+    def _ensure_devices(self) -> Any:
+        """Open the devices if they are not (hardware thread only)."""
+        state = self._devices
+        if state.devices is None:
+            try:
+                state.devices = self._factory()
+                state.error = None
+            except (DeviceError, OSError, ValueError) as exc:
+                state.error = str(exc)
+                raise
+            try:
+                state.described = state.devices.describe()
+                lim = state.devices.rail.limits_mm()
+                self._rail_limits = (lim.min_mm, lim.max_mm)
+                self._exposure_limits = state.devices.camera.exposure_limits_us()
+            except DeviceError:
+                pass
+        return state.devices
+
+    def _close_devices(self) -> None:
+        state = self._devices
+        devices, state.devices = state.devices, None
+        if devices is not None:
+            try:
+                devices.close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+
+    # ------------------------------------------------------------------ the worker
+
+    def _publish_state(
+        self, job_id: int, state: JobState, previous: JobState | None, reason: str
+    ) -> None:
+        last_error = None
+        try:
+            last_error = self.store.get_job(job_id).last_error
+        except Exception:  # noqa: BLE001
+            pass
+        self.hub.publish(
+            JobEvent(
+                job_id,
+                "state",
+                None,
+                {
+                    "state": state.value,
+                    "from": None if previous is None else previous.value,
+                    "reason": reason,
+                    "last_error": last_error,
+                },
+            )
+        )
+
+    def _transition(
+        self,
+        job_id: int,
+        state: JobState,
+        reason: str,
+        **kwargs: Any,
+    ) -> JobRecord:
+        with self._lock:
+            before = self.store.get_job(job_id).state
+            job = self.store.transition(job_id, state, reason, **kwargs)
+            self._changed.notify_all()
+        self._publish_state(job_id, state, before, reason)
+        return job
+
+    def _run_transition(self, job_id: int, state: JobState, reason: str) -> None:
+        self._transition(job_id, state, reason)
+
+    def _next_job(self) -> JobRecord | None:
+        """Wait for the next queued job and mark it running (under the lock)."""
+        with self._changed:
+            while True:
+                if self._stopping:
+                    return None
+                while self._queue:
+                    job_id = self._queue.popleft()
+                    job = self.store.get_job(job_id)
+                    if job.state is not JobState.QUEUED:
+                        continue
+                    steps = self.store.step_count(job_id)
+                    reason = (
+                        "started"
+                        if steps == 0 and job.last_error is None
+                        else f"resumed with {steps} of {job.frames_total} frames recorded"
+                    )
+                    job = self.store.transition(job_id, JobState.RUNNING, reason, clear_error=True)
+                    self._active = _Active(
+                        job_id,
+                        JobControl(),
+                        LiveProgress(job_id, frames_total=job.frames_total, frames_done=steps),
+                    )
+                    self._changed.notify_all()
+                    self.hub.publish(
+                        JobEvent(
+                            job_id,
+                            "state",
+                            None,
+                            {
+                                "state": "running",
+                                "from": "queued",
+                                "reason": reason,
+                                "last_error": None,
+                            },
+                        )
+                    )
+                    return job
+                self._changed.wait()
+
+    def _worker(self) -> None:
+        if self._open_at_start:
+            with self._hw_lock:
+                try:
+                    self._ensure_devices()
+                except Exception:  # noqa: BLE001 - reported by devices_info and the first job
+                    pass
+        while True:
+            job = self._next_job()
+            if job is None:
+                return
+            with self._hw_lock:
+                outcome = self._run(job)
+            self._finish(job.id, outcome)
+
+    def _run(self, job: JobRecord) -> Outcome:
+        assert self._active is not None
+        active = self._active
+        try:
+            devices = self._ensure_devices()
+        except Exception as exc:  # noqa: BLE001
+            msg = f"the devices cannot be opened: {exc}"
+            return Outcome(JobState.FAILED, msg, last_error=msg)
+        timings: list[StepTiming] = []
+        with self._lock:
+            self._timings[job.id] = timings
+            while len(self._timings) > 20:
+                self._timings.pop(next(iter(self._timings)))
+        ctx = RunContext(
+            config=self.config,
+            store=self.store,
+            pool=self._pool,
+            publish=self.hub.publish,
+            transition=self._run_transition,
+            progress=active.progress,
+            progress_lock=self._progress_lock,
+            control=active.control,
+            timings=timings,
+            principal_point_cache=self._pp_cache,
+        )
+        return SweepRun(job, devices, ctx).execute()
+
+    def _finish(self, job_id: int, outcome: Outcome) -> None:
+        if outcome.devices_broken:
+            self._close_devices()
+        kwargs: dict[str, Any] = {}
+        if outcome.last_error is not None:
+            kwargs["last_error"] = outcome.last_error
+        if outcome.result is not None:
+            kwargs["result"] = outcome.result
+        try:
+            self._transition(job_id, outcome.state, outcome.reason, **kwargs)
+        finally:
+            with self._lock:
+                self._active = None
+                self._changed.notify_all()
+
+
+__all__ = [
+    "FINAL_STATES",
+    "FrameNotFound",
+    "JobStatus",
+    "Orchestrator",
+    "ResultNotReady",
+    "StationBusy",
+]
