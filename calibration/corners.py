@@ -31,12 +31,13 @@ Coordinates are sensor pixels, pixel centres at integers, arrays ``[y, x]``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .edge_fit import fit_edges
+from .edge_fit import EdgeFits, fit_edges
 from .lens_grid import LensGrid
 
 
@@ -256,7 +257,7 @@ def _collect_blocks(
     return blocks, profiles
 
 
-def _deficit_width(first: tuple, second: tuple, window_px: float) -> float:  # type: ignore[type-arg]
+def _deficit_width(first: tuple[Any, ...], second: tuple[Any, ...], window_px: float) -> float:
     """Equivalent width of the unresolved region along one edge (pixels).
 
     The sum over the profiles within ``window_px`` of the corner of the
@@ -358,12 +359,14 @@ def measure_corners(
     by_owner: dict[int, dict[str, _Block]] = {}
     for b in all_blocks:
         by_owner.setdefault(b.owner, {})[b.name] = b
-    for owner, blocks in by_owner.items():
-        _finish(results[owner], blocks, fits, opts)
+    for owner, owned in by_owner.items():
+        _finish(results[owner], owned, fits, opts)
     return results
 
 
-def _finish(m: CornerMeasurement, blocks: dict[str, _Block], fits, opts: CornerOptions) -> None:  # type: ignore[no-untyped-def]
+def _finish(
+    m: CornerMeasurement, blocks: dict[str, _Block], fits: EdgeFits, opts: CornerOptions
+) -> None:
     missing = [n for n in "ADBC" if n not in blocks]
     if missing:
         m.reason = f"edge block(s) {', '.join(missing)} fall outside the micro-image interior"

@@ -79,7 +79,7 @@ def paper_focus(
     order = good[np.argsort(u[good])]
     us, las = u[order], la[order]
     # a light median smoothing so that one noisy frame cannot win the argmin
-    k = np.argmin(_median3(las))
+    k = int(np.argmin(_median3(las)))
     lo, hi = max(0, k - half_window), min(len(us), k + half_window + 1)
     u_best = float(us[k])
     if hi - lo >= 3:
@@ -123,14 +123,17 @@ def fit_blur_model(
     w2 = w[good] ** 2
     v_lo, v_hi = float(v.min()), float(v.max())
     k = int(np.argmin(w2))
+    v_k = float(v[k])
 
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
         A, B, v0 = p
         return A + B * blur_shape(v, v0, a_f) ** 2 - w2
 
     span = v_hi - v_lo
-    s_max = max(abs(blur_shape(v_lo, v[k], a_f)), abs(blur_shape(v_hi, v[k], a_f)), 1e-9)
-    p0 = np.array([w2.min(), max(w2.max() - w2.min(), 1e-6) / s_max**2, v[k]])
+    s_max = max(
+        float(abs(blur_shape(v_lo, v_k, a_f))), float(abs(blur_shape(v_hi, v_k, a_f))), 1e-9
+    )
+    p0 = np.array([w2.min(), max(float(w2.max() - w2.min()), 1e-6) / s_max**2, v_k])
     fit = least_squares(
         resid,
         p0,

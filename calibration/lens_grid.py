@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 
 @dataclass(frozen=True)
@@ -39,9 +39,7 @@ class LensGrid:
     def rotation_deg(self) -> float:
         return float(np.degrees(self.rotation_rad))
 
-    def centre(
-        self, i: NDArray[np.floating] | float, j: NDArray[np.floating] | float
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def centre(self, i: ArrayLike, j: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Pixel coordinates ``(x, y)`` of lattice node(s) ``(i, j)``."""
         c, s = np.cos(self.rotation_rad), np.sin(self.rotation_rad)
         i_arr = np.asarray(i, dtype=np.float64)
@@ -84,13 +82,13 @@ class LensGrid:
             np.arange(np.floor(fj.min()) - 1, np.ceil(fj.max()) + 2),
             indexing="ij",
         )
-        ii = ii.ravel().astype(np.int64)
-        jj = jj.ravel().astype(np.int64)
-        x, y = self.centre(ii, jj)
+        i_all = ii.ravel().astype(np.int64)
+        j_all = jj.ravel().astype(np.int64)
+        x, y = self.centre(i_all, j_all)
         keep = (
             (x >= margin_px)
             & (x <= width - 1 - margin_px)
             & (y >= margin_px)
             & (y <= height - 1 - margin_px)
         )
-        return ii[keep], jj[keep]
+        return i_all[keep], j_all[keep]

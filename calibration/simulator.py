@@ -404,8 +404,8 @@ def corner_images_px(
         np.arange(cj[0] - span, cj[0] + span + 1),
         indexing="ij",
     )
-    ii, jj = ii.ravel(), jj.ravel()
-    mxp, myp = grid.centre(ii, jj)
+    i_flat, j_flat = ii.ravel(), jj.ravel()
+    mxp, myp = grid.centre(i_flat, j_flat)
     mx, my = (mxp - cx) * o.delta, (myp - cy) * o.delta
     sx = mx + (mx - r[0]) * o.b / a
     sy = my + (my - r[1]) * o.b / a
@@ -423,7 +423,7 @@ def corner_images_px(
     return [
         {"i": int(i), "j": int(j), "mx": float(a_), "my": float(b_), "x": float(x), "y": float(y)}
         for i, j, a_, b_, x, y in zip(
-            ii[keep], jj[keep], mxp[keep], myp[keep], xp[keep], yp[keep], strict=True
+            i_flat[keep], j_flat[keep], mxp[keep], myp[keep], xp[keep], yp[keep], strict=True
         )
     ]
 

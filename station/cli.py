@@ -218,12 +218,11 @@ def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -
         if truth:
             t = truth_vals.get(key)
             row.append(_fmt(t, 4) if isinstance(t, float | int) else "")
-            try:
-                v = float(value)
-                err = v - float(t)  # type: ignore[arg-type]
+            if isinstance(t, float | int) and value not in ("", "n/a"):
+                err = float(value) - float(t)
                 rel = f" ({100 * err / float(t):+.3f} %)" if key in ("a_mm", "b_mm", "Q") else ""
                 row.append(f"{err:+.4f}{rel}")
-            except (TypeError, ValueError):
+            else:
                 row.append("")
         table.append(row)
     widths = [max(len(r[i]) for r in [header, *table]) for i in range(len(header))]
