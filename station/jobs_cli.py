@@ -4,6 +4,7 @@
 
     lfcal sweep --config FILE [--start MM --stop MM --step MM] [--exposure-us US]
                 [--settle-s S] [--no-calibrate] [--resume JOB] [--emulator-speedup X]
+                [--sim-frame-cache DIR] [--quiet]
 
 runs one job on the station of ``FILE`` (its devices, its job database) and
 shows a progress bar on the terminal (one line per frame when the output is
@@ -117,6 +118,12 @@ def _sweep_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="emulated stages move this many times faster (simulation only)",
     )
+    p.add_argument(
+        "--sim-frame-cache",
+        default=None,
+        metavar="DIR",
+        help="simulated camera only: reuse rendered frames from DIR",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -176,7 +183,12 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
     if args.no_calibrate:
         request["calibrate"] = False
 
-    station = Orchestrator(config, emulator_speedup=args.emulator_speedup, run_queued=False)
+    station = Orchestrator(
+        config,
+        emulator_speedup=args.emulator_speedup,
+        run_queued=False,
+        sim_frame_cache=args.sim_frame_cache,
+    )
     try:
         station.start()
     except StationBusy as exc:

@@ -171,6 +171,8 @@ class Orchestrator:
             passes False: it runs only what it submits).
         open_devices_at_start: open the devices as soon as the worker starts
             (else at the first job).
+        sim_frame_cache: simulated camera only: cache rendered frames in this
+            directory (:mod:`station.sim_cache`).
     """
 
     def __init__(
@@ -183,6 +185,7 @@ class Orchestrator:
         emulator_speedup: float = 1.0,
         run_queued: bool = True,
         open_devices_at_start: bool = True,
+        sim_frame_cache: str | os.PathLike[str] | None = None,
     ) -> None:
         self.config = config
         self.data_dir = Path(config.storage.data_dir)
@@ -192,6 +195,12 @@ class Orchestrator:
         if devices_factory is None:
 
             def devices_factory() -> Any:
+                if sim_frame_cache is not None:
+                    from station.sim_cache import open_devices_with_frame_cache
+
+                    return open_devices_with_frame_cache(
+                        config, sim_frame_cache, emulator_speedup=emulator_speedup
+                    )
                 from station.devices import open_devices
 
                 return open_devices(config, emulator_speedup=emulator_speedup)
@@ -208,6 +217,7 @@ class Orchestrator:
         self._progress_lock = threading.Lock()
         self._hw_lock = threading.Lock()
         self._devices = _DevicesState()
+        self._devices_tried = threading.Event()
         self._timings: dict[int, list[StepTiming]] = {}
         self._stopping = False
         self._thread: threading.Thread | None = None
@@ -317,8 +327,19 @@ class Orchestrator:
 
     # ------------------------------------------------------------------ submit / control
 
+    def wait_ready(self, timeout_s: float = 60.0) -> bool:
+        """Wait until the first attempt to open the devices has ended (True) or ``timeout_s``."""
+        return self._devices_tried.wait(timeout_s)
+
     def validate(self, request: SweepRequest | Mapping[str, Any] | None) -> SweepPlan:
-        """Check a request without submitting it (raises :class:`station.sweep.RequestInvalid`)."""
+        """Check a request without submitting it (raises :class:`station.sweep.RequestInvalid`).
+
+        The rail travel and the camera's exposure range are checked once the
+        devices have been opened (this waits up to 10 s for the first opening);
+        otherwise against the configuration, and again when the job starts.
+        """
+        if self._open_at_start and self._thread is not None:
+            self._devices_tried.wait(10.0)
         return plan_sweep(
             dict(request) if isinstance(request, Mapping) else request,
             self.config,
@@ -484,7 +505,11 @@ class Orchestrator:
             )
         if job.state in (JobState.QUEUED, JobState.RUNNING, JobState.PAUSED):
             raise ResultNotReady(job_id, job.state, "the calibration is not finished")
-        raise ResultNotReady(job_id, job.state, job.last_error or "no result")
+        why = job.last_error
+        if why is None:
+            changes = self.store.transitions(job_id)
+            why = changes[-1].reason if changes else "no result"
+        raise ResultNotReady(job_id, job.state, why)
 
     def archive_dir(self, job_id: int) -> Path:
         """The job's ``lfcal-sweep/1`` directory (it may not exist before the job starts)."""
@@ -757,6 +782,7 @@ class Orchestrator:
                     self._ensure_devices()
                 except Exception:  # noqa: BLE001 - reported by devices_info and the first job
                     pass
+        self._devices_tried.set()
         while True:
             job = self._next_job()
             if job is None:
