@@ -304,6 +304,12 @@ def cmd_config_check(args: argparse.Namespace) -> int:
     return config_check_main(args.file)
 
 
+def cmd_devices(args: argparse.Namespace) -> int:
+    from station.devices_cli import devices_main
+
+    return devices_main(args.config, home=args.home)
+
+
 def cmd_emulate_stage(args: argparse.Namespace, rest: list[str]) -> int:
     # the emulator is simulated code: loaded by name so production code never imports it
     module = importlib.import_module("drivers.sim.emulate_stage_cli")
@@ -385,6 +391,11 @@ def build_parser() -> argparse.ArgumentParser:
     c = csub.add_parser("check", help="check a station configuration TOML file")
     c.add_argument("file")
     c.set_defaults(func=cmd_config_check)
+
+    p = sub.add_parser("devices", help="connect to every configured device and describe it")
+    p.add_argument("--config", default="config/simulated.toml", help="station configuration")
+    p.add_argument("--home", action="store_true", help="home the stages first (moves them)")
+    p.set_defaults(func=cmd_devices)
 
     p = sub.add_parser(
         "emulate-stage",

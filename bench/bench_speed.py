@@ -1,0 +1,117 @@
+"""Speed of the ESIF core: one frame's analysis, and a full-size 100-frame calibration.
+
+- one frame's analysis (3000x1000 and 5120x5120), target <= 0.3 s for the ROI the
+  station streams (3000x1000), so analysis keeps up with acquisition;
+- ``lfcal calibrate`` of a 100-frame 5120x5120 sweep, target <= 120 s: projected from
+  the measured white-image fit, PNG decode and per-frame analysis times on 2 worker
+  processes (rendering 100 full frames for the benchmark alone would take ~30 min).
+
+Run: ``python -m bench.bench_speed``.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.archive import decode_image, encode_image
+from calibration.pipeline import FrameAnalyzer, SweepGeometry, default_workers
+from calibration.presets import get_preset
+from calibration.sim_sweep import fit_frame, frame_seed, render_white
+from calibration.simulator import render_frame
+
+
+def _geometry(preset: Any) -> SweepGeometry:
+    from calibration.archive import SweepManifest
+    from calibration.sim_sweep import manifest_header
+
+    return SweepGeometry.from_manifest(SweepManifest.from_dict(manifest_header(preset)))
+
+
+def _time_frames(width: int, height: int, n: int) -> dict[str, float]:
+    preset = fit_frame(get_preset("paper"), width, height)
+    geometry = _geometry(preset)
+    white = render_white(preset, seed=0)
+    t0 = time.perf_counter()
+    analyzer = FrameAnalyzer.from_white(geometry, white)
+    fit_s = time.perf_counter() - t0
+    rails = np.linspace(5.0, 95.0, n)
+    frames = [
+        render_frame(
+            preset.camera,
+            object_distance_mm=preset.sweep.object_distance_mm(r),
+            seed=frame_seed(0, k),
+        )
+        for k, r in enumerate(rails)
+    ]
+    analyzer.analyze(0, float(rails[0]), frames[0])  # builds the pixel map once per sweep
+    times = []
+    for k, (r, img) in enumerate(zip(rails, frames, strict=True)):
+        t0 = time.perf_counter()
+        analyzer.analyze(k, float(r), img)
+        times.append(time.perf_counter() - t0)
+    shape = (height, width)
+    data = encode_image(frames[0], expected_shape=shape, bit_depth=12, name="f.png")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "f.png"
+        path.write_bytes(data)
+        t0 = time.perf_counter()
+        decode_image(path.read_bytes(), "f.png", expected_shape=shape, bit_depth=12)
+        decode_s = time.perf_counter() - t0
+    return {"fit_s": fit_s, "frame_s": float(np.median(times)), "decode_s": decode_s}
+
+
+def run(n: int = 5) -> list[dict[str, Any]]:
+    small = _time_frames(3000, 1000, n)
+    full = _time_frames(5120, 5120, 3)
+    workers = min(2, default_workers())
+    projected = full["fit_s"] + 100 * (full["frame_s"] + full["decode_s"]) / workers
+    return [
+        {
+            "name": "analysis of one 3000x1000 frame (median)",
+            "value": small["frame_s"],
+            "unit": "s",
+            "target": 0.3,
+            "ok": small["frame_s"] <= 0.3,
+        },
+        {
+            "name": "analysis of one 5120x5120 frame (median)",
+            "value": full["frame_s"],
+            "unit": "s",
+            "target": None,
+            "ok": None,
+        },
+        {
+            "name": "MLA fit of a 5120x5120 white image",
+            "value": full["fit_s"],
+            "unit": "s",
+            "target": None,
+            "ok": None,
+        },
+        {
+            "name": "decode one 5120x5120 16-bit PNG",
+            "value": full["decode_s"],
+            "unit": "s",
+            "target": None,
+            "ok": None,
+        },
+        {
+            "name": f"calibrate 100 frames 5120x5120, {workers} workers (projected)",
+            "value": projected,
+            "unit": "s",
+            "target": 120.0,
+            "ok": projected <= 120.0,
+        },
+    ]
+
+
+if __name__ == "__main__":
+    from bench.__main__ import print_table
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    print_table(run())

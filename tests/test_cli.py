@@ -1,0 +1,35 @@
+"""The `lfcal` command wiring: every subcommand reachable, errors as one line and exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from station.cli import build_parser, main
+
+
+def test_subcommands_are_registered() -> None:
+    choices = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
+    assert {"simulate", "calibrate", "config", "devices", "emulate-stage", "demo"} <= set(choices)
+
+
+def test_devices_with_a_missing_config(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["devices", "--config", "/nonexistent/station.toml"]) == 2
+    assert "file not found" in capsys.readouterr().err
+
+
+def test_config_check_reports_file_key_and_reason(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[rail]\ndriver = "zaber"\nspeed = 3\n')
+    assert main(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "rail" in err
+
+
+def test_shipped_configs_pass_the_check(capsys: pytest.CaptureFixture[str]) -> None:
+    root = Path(__file__).resolve().parents[1]
+    for name in ("simulated.toml", "lab-example.toml"):
+        assert main(["config", "check", str(root / "config" / name)]) == 0
+    assert capsys.readouterr().out.count("OK") == 2
