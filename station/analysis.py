@@ -35,6 +35,22 @@ from calibration.pipeline import FrameAnalyzer, FrameSummary
 _CACHE: dict[str, FrameAnalyzer] = {}
 
 
+def _init_worker() -> None:
+    """Runs first in every worker: exit when the station process ends, even by ``kill -9``.
+
+    (A pool worker otherwise waits for work forever once its parent is gone.)
+    """
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()  # returns when the parent's sentinel closes, i.e. it has ended
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def _warm_up() -> int:
     """Runs in a new worker: imports are done by then; returns the worker's pid."""
     return os.getpid()
@@ -107,7 +123,9 @@ class AnalysisPool:
         with self._lock:
             if self._executor is None:
                 ctx = multiprocessing.get_context("spawn")
-                self._executor = ProcessPoolExecutor(self.workers, mp_context=ctx)
+                self._executor = ProcessPoolExecutor(
+                    self.workers, mp_context=ctx, initializer=_init_worker
+                )
                 for _ in range(self.workers):
                     self._executor.submit(_warm_up)
             return self._executor

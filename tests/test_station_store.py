@@ -1,0 +1,174 @@
+"""The SQLite job store: life cycle, transitions with reasons, steps, WAL, concurrency."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from pathlib import Path
+
+import pytest
+
+from station.store import (
+    ALLOWED_TRANSITIONS,
+    DuplicateStep,
+    IdempotencyConflict,
+    InvalidTransition,
+    JobNotFound,
+    JobState,
+    JobStore,
+    StepRecord,
+)
+
+REQUEST = {"start_mm": 0.0, "stop_mm": 9.0, "step_mm": 1.0, "frames": 10}
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> JobStore:
+    s = JobStore(tmp_path / "db" / "jobs.sqlite3")
+    yield s
+    s.close()
+
+
+def _step(job_id: int, index: int) -> StepRecord:
+    return StepRecord(
+        job_id,
+        index,
+        float(index),
+        index + 1e-4,
+        f"frames/{index:04d}.png",
+        "ab" * 32,
+        1.0,
+        2.0,
+        3.0,
+    )
+
+
+def test_a_job_moves_through_its_life_cycle_with_every_transition_stored(
+    store: JobStore, tmp_path: Path
+) -> None:
+    job, created = store.create_job(REQUEST, archive_root=tmp_path, frames_total=10)
+    assert created and job.state is JobState.QUEUED and job.request == REQUEST
+    assert job.archive_dir.parent == tmp_path and job.archive_dir.name.startswith("job-000001-")
+    store.transition(job.id, JobState.RUNNING, "started")
+    store.transition(job.id, JobState.PAUSED, "operator")
+    store.transition(job.id, JobState.RUNNING, "resumed")
+    done = store.transition(job.id, JobState.SUCCEEDED, "calibrated", result={"a_mm": 10.9})
+    assert done.result == {"a_mm": 10.9} and done.updated_at >= job.created_at
+    trans = store.transitions(job.id)
+    assert [(t.from_state, t.to_state, t.reason) for t in trans] == [
+        (None, JobState.QUEUED, "submitted"),
+        (JobState.QUEUED, JobState.RUNNING, "started"),
+        (JobState.RUNNING, JobState.PAUSED, "operator"),
+        (JobState.PAUSED, JobState.RUNNING, "resumed"),
+        (JobState.RUNNING, JobState.SUCCEEDED, "calibrated"),
+    ]
+    assert [t.at for t in trans] == sorted(t.at for t in trans)
+
+
+def test_every_transition_outside_the_table_is_refused_and_changes_nothing(
+    store: JobStore, tmp_path: Path
+) -> None:
+    # reach every state, then try every target from it
+    paths = {
+        JobState.QUEUED: [],
+        JobState.RUNNING: [JobState.RUNNING],
+        JobState.PAUSED: [JobState.RUNNING, JobState.PAUSED],
+        JobState.SUCCEEDED: [JobState.RUNNING, JobState.SUCCEEDED],
+        JobState.FAILED: [JobState.RUNNING, JobState.FAILED],
+        JobState.CANCELLED: [JobState.CANCELLED],
+        JobState.INTERRUPTED: [JobState.RUNNING, JobState.INTERRUPTED],
+    }
+    for state, path in paths.items():
+        for target in JobState:
+            job, _ = store.create_job(REQUEST, archive_root=tmp_path, frames_total=10)
+            for step in path:
+                store.transition(job.id, step, "setup")
+            before = store.transitions(job.id)
+            if target in ALLOWED_TRANSITIONS[state]:
+                assert store.transition(job.id, target, "ok").state is target
+            else:
+                with pytest.raises(InvalidTransition) as info:
+                    store.transition(job.id, target, "refused", last_error="x")
+                assert info.value.from_state is state and info.value.to_state is target
+                assert f"is {state.value}: cannot" in str(info.value)
+                assert store.get_job(job.id).state is state
+                assert store.get_job(job.id).last_error is None
+                assert store.transitions(job.id) == before
+    with pytest.raises(JobNotFound):
+        store.transition(9999, JobState.RUNNING, "x")
+
+
+def test_steps_are_recorded_once(store: JobStore, tmp_path: Path) -> None:
+    job, _ = store.create_job(REQUEST, archive_root=tmp_path, frames_total=10)
+    for i in (2, 0, 1):
+        store.record_step(_step(job.id, i))
+    with pytest.raises(DuplicateStep):
+        store.record_step(_step(job.id, 1))
+    assert [s.index for s in store.steps(job.id)] == [0, 1, 2]
+    assert [s.index for s in store.steps(job.id, after=0)] == [1, 2]
+    store.set_step_summary(job.id, 1, {"Q": 0.2, "Ls_px": None})
+    assert store.step(job.id, 1).summary == {"Q": 0.2, "Ls_px": None}
+    store.delete_steps(job.id, [0, 2])
+    assert store.step_count(job.id) == 1
+
+
+def test_a_real_wal_database_that_survives_reopening(tmp_path: Path) -> None:
+    path = tmp_path / "jobs.sqlite3"
+    with JobStore(path) as store:
+        job, _ = store.create_job(REQUEST, archive_root=tmp_path, frames_total=10)
+        store.record_step(_step(job.id, 0))
+    conn = sqlite3.connect(path)
+    assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    conn.close()
+    with JobStore(path) as again:
+        assert again.get_job(job.id).state is JobState.QUEUED
+        assert again.step_count(job.id) == 1
+
+
+def test_idempotency_keys(store: JobStore, tmp_path: Path) -> None:
+    first, created = store.create_job(
+        REQUEST, archive_root=tmp_path, frames_total=10, idempotency_key="k1"
+    )
+    again, created_again = store.create_job(
+        REQUEST, archive_root=tmp_path, frames_total=10, idempotency_key="k1"
+    )
+    assert created and not created_again and again.id == first.id
+    with pytest.raises(IdempotencyConflict, match="different request"):
+        store.create_job(
+            dict(REQUEST, step_mm=2.0), archive_root=tmp_path, frames_total=5, idempotency_key="k1"
+        )
+    assert len(store.list_jobs()) == 1
+
+
+def test_readers_and_writers_in_threads(store: JobStore, tmp_path: Path) -> None:
+    job, _ = store.create_job(REQUEST, archive_root=tmp_path, frames_total=200)
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def write() -> None:
+        try:
+            for i in range(200):
+                store.record_step(_step(job.id, i))
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+        finally:
+            stop.set()
+
+    def read() -> None:
+        try:
+            last = 0
+            while not stop.is_set():
+                n = store.step_count(job.id)
+                assert n >= last
+                last = n
+                store.get_job(job.id)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write)] + [threading.Thread(target=read) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors
+    assert store.step_count(job.id) == 200
