@@ -15,6 +15,7 @@ never silently missing a frame.
 
 from __future__ import annotations
 
+import functools
 import math
 import multiprocessing
 import os
@@ -214,7 +215,7 @@ class AnalysisSession:
             future.set_exception(BrokenProcessPool("analysis pool unavailable"))
         with self._lock:
             self._pending[index] = (future, rail_mm, str(path))
-        future.add_done_callback(lambda f, i=index: self._finished(i, f))
+        future.add_done_callback(functools.partial(self._finished, index))
 
     def _finished(self, index: int, future: Future[FrameSummary]) -> None:
         if future.cancelled() or future.exception() is not None:

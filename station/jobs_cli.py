@@ -404,11 +404,11 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     out.write(f"{'id':>5}  {'state':<11} {'frames':>9}  {'created':<19}  archive / last error\n")
     for j in jobs:
-        frames = f"{counts[j.id]}/{j.frames_total}"
+        done = f"{counts[j.id]}/{j.frames_total}"
         tail = str(j.archive_dir)
         if j.last_error:
             tail += f"  ({j.last_error[:100]})"
-        out.write(f"{j.id:>5}  {j.state.value:<11} {frames:>9}  {_when(j.created_at)}  {tail}\n")
+        out.write(f"{j.id:>5}  {j.state.value:<11} {done:>9}  {_when(j.created_at)}  {tail}\n")
     return EXIT_OK
 
 

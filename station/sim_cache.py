@@ -146,7 +146,7 @@ def cached_scenes(cache_dir: str | os.PathLike[str]) -> Iterator[None]:
         return CachedScene(original(*args, **kwargs), cache_dir)
 
     with _PATCH_LOCK:
-        sim_scene.scene_from_preset = cached  # type: ignore[assignment]
+        sim_scene.scene_from_preset = cached
         try:
             yield
         finally:

@@ -21,6 +21,7 @@ import pytest
 from test_station_helpers import (
     assert_complete_archive,
     assert_kept_frames,
+    bench_of,
     frame_cache,
     make_station,
 )
@@ -97,7 +98,7 @@ def test_fault_is_recovered_and_the_archive_is_complete(station: Orchestrator, k
     done = run(station)
     assert done.state is JobState.SUCCEEDED, done.last_error
     assert_complete_archive(station, done.id, 8)
-    stats = station.devices.bench.emulator.stats
+    stats = bench_of(station).emulator.stats
     if kind == "dropped reply":
         assert stats.dropped == 1
     elif kind == "garbled reply":
@@ -140,7 +141,7 @@ def test_fault_fails_the_job_keeps_frames_and_resume_completes_it(
     assert "frames kept" in failed.last_error
     kept = assert_kept_frames(station, failed.id)
     assert 2 <= len(kept) < 8
-    assert not station.devices or not station.devices.bench.emulator.snapshot(*RAIL).busy
+    assert not station.devices or not bench_of(station).emulator.snapshot(*RAIL).busy
     # the operator fixes the cause; resume continues from the first missing frame
     if repair is not None:
         repair(station.devices)

@@ -116,6 +116,13 @@ def make_station(
     ).start()
 
 
+def bench_of(station: Orchestrator) -> Any:
+    """The simulated bench of the station's open devices (emulator, camera fault hooks)."""
+    devices = station.devices
+    assert devices is not None, "the devices are not open"
+    return devices.bench
+
+
 def simulated_truth(config: StationConfig, frames: int, step_mm: float) -> dict[str, Any]:
     """The simulator's ground truth for the configured camera and a sweep from rail 0."""
     cam = config.camera

@@ -22,6 +22,7 @@ import pytest
 from test_station_helpers import (
     assert_complete_archive,
     assert_kept_frames,
+    bench_of,
     frame_cache,
     make_station,
     simulated_truth,
@@ -115,7 +116,7 @@ def test_pause_at_a_step_boundary_then_resume_to_a_complete_archive(
     kept = assert_kept_frames(station, job.id)
     assert 2 <= len(kept) < 8
     assert paused.frames_done == len(kept)  # every grabbed frame was written before pausing
-    emulator = station.devices.bench.emulator
+    emulator = bench_of(station).emulator
     assert not emulator.snapshot(1, 1).busy  # the rail is stopped
     assert station.pause(job.id).state is JobState.PAUSED  # pausing again changes nothing
     station.resume(job.id, "board checked")

@@ -9,6 +9,7 @@ frames, so a resumed job captures every missing frame once and none twice.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ def _image(seed: int) -> np.ndarray:
 
 
 @pytest.fixture
-def job(tmp_path: Path) -> tuple[JobStore, int, Path, SweepWriter]:
+def job(tmp_path: Path) -> Iterator[tuple[JobStore, int, Path, SweepWriter]]:
     store = JobStore(tmp_path / "jobs.sqlite3")
     record, _ = store.create_job({"frames": 6}, archive_root=tmp_path, frames_total=6)
     writer = SweepWriter.in_place(record.archive_dir, HEADER)

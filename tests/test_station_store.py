@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sqlite3
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,7 @@ REQUEST = {"start_mm": 0.0, "stop_mm": 9.0, "step_mm": 1.0, "frames": 10}
 
 
 @pytest.fixture
-def store(tmp_path: Path) -> JobStore:
+def store(tmp_path: Path) -> Iterator[JobStore]:
     s = JobStore(tmp_path / "db" / "jobs.sqlite3")
     yield s
     s.close()
@@ -107,7 +108,8 @@ def test_steps_are_recorded_once(store: JobStore, tmp_path: Path) -> None:
     assert [s.index for s in store.steps(job.id)] == [0, 1, 2]
     assert [s.index for s in store.steps(job.id, after=0)] == [1, 2]
     store.set_step_summary(job.id, 1, {"Q": 0.2, "Ls_px": None})
-    assert store.step(job.id, 1).summary == {"Q": 0.2, "Ls_px": None}
+    step = store.step(job.id, 1)
+    assert step is not None and step.summary == {"Q": 0.2, "Ls_px": None}
     store.delete_steps(job.id, [0, 2])
     assert store.step_count(job.id) == 1
 
