@@ -127,20 +127,25 @@ def find_junctions(
     *,
     sigma_px: float = 2.0,
     relative_threshold: float = 0.12,
+    rows: tuple[int, int] | None = None,
 ) -> Junctions:
     """The strongest saddle point of every micro-image interior that holds a corner.
 
     Strength is ``-det(Hessian)`` of the frame smoothed with ``sigma_px``; a
     micro-image is kept when its strength exceeds ``relative_threshold`` times
-    a robust maximum over the frame.
+    a robust maximum over the frame. ``rows = (first, end)`` limits the search
+    to a band of rows (sensor pixels).
     """
-    img = np.asarray(frame, dtype=np.float32)
+    r0, r1 = (0, mim.shape[0]) if rows is None else (max(0, rows[0]), min(mim.shape[0], rows[1]))
+    pad = int(np.ceil(4 * sigma_px)) + 2
+    p0, p1 = max(0, r0 - pad), min(mim.shape[0], r1 + pad)
+    img = np.asarray(frame[p0:p1], dtype=np.float32)
     g = cv2.GaussianBlur(img, (0, 0), sigma_px)
     ixx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3)
     iyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3)
     ixy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3)
-    strength = ixy * ixy - ixx * iyy
-    lab = mim.label.ravel()
+    strength = (ixy * ixy - ixx * iyy)[r0 - p0 : r1 - p0]
+    lab = mim.label[r0:r1].ravel()
     inside = lab >= 0
     s_flat = strength.ravel()
     best = np.full(mim.n_labels, -np.inf, dtype=np.float32)
@@ -149,18 +154,17 @@ def find_junctions(
     if top.size == 0:
         return Junctions(*(np.empty(0, dtype=t) for t in (np.int64, np.int64, float, float, float)))
     robust_max = top[-min(10, top.size)]
-    keep_labels = np.flatnonzero(best > relative_threshold * max(robust_max, 1e-12))
+    strong = best > relative_threshold * max(float(robust_max), 1e-12)
     # position of the maximum within each kept label
     pix = np.flatnonzero(inside)
     lab_in = lab[pix]
-    is_best = s_flat[pix] == best[lab_in]
-    sel = np.isin(lab_in, keep_labels) & is_best
+    sel = strong[lab_in] & (s_flat[pix] == best[lab_in])
     pix_sel, lab_sel = pix[sel], lab_in[sel]
     _, first = np.unique(lab_sel, return_index=True)
     pix_sel, lab_sel = pix_sel[first], lab_sel[first]
     ys, xs = np.divmod(pix_sel, mim.shape[1])
     i, j = mim.index_of(lab_sel.astype(np.int64))
-    return Junctions(i, j, xs.astype(float), ys.astype(float), best[lab_sel].astype(float))
+    return Junctions(i, j, xs.astype(float), (ys + r0).astype(float), best[lab_sel].astype(float))
 
 
 def _hough_refine(patch: NDArray[np.float32], opts: CornerOptions) -> tuple[int, float, float]:

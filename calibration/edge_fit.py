@@ -79,47 +79,57 @@ def fit_edges(
     B = y[:, :ends].mean(axis=1)
     C = y[:, -ends:].mean(axis=1) - B
     grad = np.abs(np.diff(y, axis=1))
-    i = np.argmax(grad, axis=1)
-    t0 = i + 0.5
+    t0 = np.argmax(grad, axis=1) + 0.5
     w = np.full(n, 0.8)
     p = np.stack([B, C, t0, w], axis=1)
     lam = np.full(n, 1e-3)
     value, jac = _model(t, p)
     r = y - value
     cost = np.einsum("nk,nk->n", r, r)
+    eye = np.eye(4)[None]
+    active = np.arange(n)
     for _ in range(max_iter):
-        jtj = np.einsum("nki,nkj->nij", jac, jac)
-        jtr = np.einsum("nki,nk->ni", jac, r)
-        diag = np.einsum("nii->ni", jtj)
-        a = jtj + (lam[:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(4)[None]
+        if active.size == 0:
+            break
+        ja, ra = jac[active], r[active]
+        jt = ja.transpose(0, 2, 1)
+        jtj = jt @ ja
+        jtr = (jt @ ra[:, :, None])[:, :, 0]
+        diag = np.maximum(np.einsum("nii->ni", jtj), 1e-12)
+        a = jtj + (lam[active, None] * diag)[:, :, None] * eye
         try:
             step = np.linalg.solve(a, jtr[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            step = np.linalg.lstsq(a.reshape(-1, 4), jtr.reshape(-1), rcond=None)[0].reshape(n, 4)
-        trial = p + step
+            step = np.stack(
+                [np.linalg.lstsq(m, v, rcond=None)[0] for m, v in zip(a, jtr, strict=True)]
+            )
+        trial = p[active] + step
         trial[:, 3] = np.clip(trial[:, 3], 0.02, 50.0)
         t_value, t_jac = _model(t, trial)
-        t_r = y - t_value
+        t_r = y[active] - t_value
         t_cost = np.einsum("nk,nk->n", t_r, t_r)
-        better = t_cost < cost
-        p[better] = trial[better]
-        value[better], jac[better], r[better], cost[better] = (
+        better = t_cost < cost[active]
+        idx = active[better]
+        p[idx] = trial[better]
+        value[idx], jac[idx], r[idx], cost[idx] = (
             t_value[better],
             t_jac[better],
             t_r[better],
             t_cost[better],
         )
-        lam = np.where(better, lam * 0.3, lam * 10.0)
-        if np.all(np.abs(step[:, 2]) < 1e-5):
-            break
+        lam[active] = np.where(better, lam[active] * 0.3, lam[active] * 10.0)
+        done = (np.abs(step[:, 2]) < 1e-5) & (np.abs(step[:, 3]) < 1e-5) | (lam[active] > 1e8)
+        active = active[~done]
     dof = max(1, k - 4)
     sigma2 = cost / dof
-    jtj = np.einsum("nki,nkj->nij", jac, jac)
+    jt = jac.transpose(0, 2, 1)
+    jtj = jt @ jac
+    det = np.linalg.det(jtj)
     cov_tt = np.full(n, np.inf)
-    good_cond = np.linalg.cond(jtj) < 1e12
-    if np.any(good_cond):
-        cov = np.linalg.inv(jtj[good_cond])
-        cov_tt[good_cond] = cov[:, 2, 2]
+    good = np.isfinite(det) & (np.abs(det) > 1e-300)
+    if np.any(good):
+        cov = np.linalg.inv(jtj[good])
+        cov_tt[good] = cov[:, 2, 2]
     position_se = np.sqrt(np.maximum(sigma2 * cov_tt, 0.0))
     width = np.abs(p[:, 3])
     ok = (

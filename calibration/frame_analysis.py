@@ -34,6 +34,9 @@ from .corners import (
 from .lens_grid import LensGrid
 from .optics import image_distance
 
+SEARCH_BAND_PITCHES = 8.0
+"""Half height of the first search band for corners, in micro-image pitches."""
+
 
 @dataclass(frozen=True)
 class FrameContext:
@@ -242,17 +245,30 @@ def analyze_frame(
     ``micro_image_map`` may be passed in to reuse it across frames of a sweep.
     """
     mim = micro_image_map or MicroImageMap(ctx.image_grid, frame.shape, ctx.interior_radius_px)
-    junctions = find_junctions(frame, mim, sigma_px=ctx.options.saddle_sigma_px)
-    # identify the board corner of every saddle first, then measure only the two we need
-    rough = [
-        CornerMeasurement(lens_i=int(i), lens_j=int(j), x=float(x), y=float(y), ok=True)
-        for i, j, x, y in zip(junctions.i, junctions.j, junctions.x, junctions.y, strict=True)
-    ]
-    wanted = {
-        k: v
-        for k, v in _group_by_board_corner(rough, ctx, object_distance_mm).items()
-        if k in ((0, 0), (2, 0))
-    }
+    # both corners lie on the board's row Y = 0, imaged near the principal point's row:
+    # search a band of rows first, the whole frame only when the band shows neither
+    half_band = int(SEARCH_BAND_PITCHES * ctx.image_grid.pitch_px)
+    cy = int(round(ctx.principal_point_px[1]))
+    bands: list[tuple[int, int] | None] = [(cy - half_band, cy + half_band + 1)]
+    if bands[0] != (0, frame.shape[0]) and (
+        cy - half_band > 0 or cy + half_band + 1 < frame.shape[0]
+    ):
+        bands.append(None)
+    wanted: dict[tuple[int, int], list[CornerMeasurement]] = {}
+    for band in bands:
+        junctions = find_junctions(frame, mim, sigma_px=ctx.options.saddle_sigma_px, rows=band)
+        # identify the board corner of every saddle first, then measure only the two we need
+        rough = [
+            CornerMeasurement(lens_i=int(i), lens_j=int(j), x=float(x), y=float(y), ok=True)
+            for i, j, x, y in zip(junctions.i, junctions.j, junctions.x, junctions.y, strict=True)
+        ]
+        wanted = {
+            k: v
+            for k, v in _group_by_board_corner(rough, ctx, object_distance_mm).items()
+            if k in ((0, 0), (2, 0))
+        }
+        if wanted:
+            break
     starts = [(m.lens_i, m.lens_j, m.x, m.y) for members in wanted.values() for m in members]
     meas = measure_corners(
         frame,
