@@ -14,6 +14,10 @@ Events (:class:`JobEvent`):
     None until both corners are measured), edge_width_px, error.
 ``state``
     the job changed state (``id`` None). ``data``: state, from, reason, last_error.
+``fault``
+    a device fault the job recovered from (``id`` None). ``data``: what (where
+    in the sweep), error (the device's message), action (retry, rehome,
+    reconnect and why).
 ``phase``
     the job entered a phase of its run (``id`` None). ``data``: phase
     (``opening``, ``homing``, ``white``, ``aligning``, ``sweeping``,
@@ -45,7 +49,7 @@ class JobEvent:
 
     Attributes:
         job_id: the job.
-        type: ``"step"``, ``"analysis"``, ``"state"`` or ``"phase"``.
+        type: ``"step"``, ``"analysis"``, ``"state"``, ``"fault"`` or ``"phase"``.
         id: the step index for ``step`` events (SSE event id), else None.
         data: JSON-ready payload (see the module docstring).
         at: Unix time (s) of the event.

@@ -44,11 +44,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from calibration.archive import frame_file_name
+from calibration.archive import frame_file_name, read_image, read_manifest
 from drivers.errors import DeviceError
-from station.analysis import AnalysisPool
+from station.analysis import AnalysisPool, summary_from_dict
 from station.config import StationConfig
-from station.events import EventHub, JobEvent, LiveProgress, Subscription
+from station.events import EventHub, JobEvent, LiveProgress, Subscription, analysis_payload
 from station.recovery import VerifyReport, reconcile
 from station.runner import JobControl, Outcome, RunContext, StepTiming, SweepRun
 from station.store import (
@@ -523,6 +523,18 @@ class Orchestrator:
             raise FrameNotFound(job_id, index)
         return Path(job.archive_dir) / (step.file or frame_file_name(index))
 
+    def read_frame(self, job_id: int, index: int) -> Any:
+        """A recorded frame as counts (``uint16``, ``(height, width)``), e.g. for a preview.
+
+        Raises :class:`FrameNotFound`, or a :class:`calibration.archive.ImageError`
+        if the file is damaged.
+        """
+        path = self.frame_path(job_id, index)
+        manifest = read_manifest(self.archive_dir(job_id))
+        return read_image(
+            path, expected_shape=manifest.camera.shape, bit_depth=manifest.camera.bit_depth
+        )
+
     def step_timings(self, job_id: int) -> list[StepTiming]:
         """Hardware-thread timings of the steps this process ran for the job."""
         with self._lock:
@@ -569,9 +581,6 @@ class Orchestrator:
                 "replayed": True,
             }
             if step.summary is not None:
-                from station.analysis import summary_from_dict
-                from station.events import analysis_payload
-
                 data["summary"] = analysis_payload(
                     summary_from_dict(step.summary), self.config.board.reference_gap_mm
                 )

@@ -295,8 +295,12 @@ class SweepRun:
             self.ctx.progress.phase = phase
         self.ctx.publish(JobEvent(self.job.id, "phase", None, {"phase": phase, "detail": detail}))
 
-    def _boundary(self) -> None:
-        """A step boundary: honour cancel / shut-down / pause, and the writer's health."""
+    def _boundary(self) -> bool:
+        """A step boundary: honour cancel / shut-down / pause, and the writer's health.
+
+        Returns True if the job was paused (and resumed) here: the caller puts the
+        XY stage back where its next action needs it.
+        """
         control = self.ctx.control
         if control.shutdown:
             raise StopRequested(JobState.INTERRUPTED, "station shut down while the job was running")
@@ -306,6 +310,8 @@ class SweepRun:
             self._check_sink()
         if control.pause:
             self._pause()
+            return True
+        return False
 
     def _check_sink(self) -> None:
         assert self.sink is not None
@@ -336,8 +342,6 @@ class SweepRun:
         self.ctx.transition(self.job.id, JobState.RUNNING, control.resume_reason)
         # the devices may have been touched while paused: check the references again
         self._home_if_needed()
-        self._align()
-        self._phase("sweeping", "resumed")
 
     def _make_safe(self) -> None:
         """Stop the rail (decelerated); errors are ignored (best effort)."""
@@ -534,7 +538,6 @@ class SweepRun:
             lambda: self.dev.xy.move_xy_mm(pos.x_mm, pos.y_mm),
             rehome=self.dev.xy.home,
         )
-        self._boundary()
         return self._grab("the white image").pixels
 
     def _white_of_job(self, source: int) -> np.ndarray:
@@ -653,7 +656,10 @@ class SweepRun:
         self._phase("sweeping", f"{len(todo)} of {self.plan.frames} frames to capture")
         for index in todo:
             t0 = time.perf_counter()
-            self._boundary()
+            if self._boundary():
+                self._align()
+                self._phase("sweeping", "resumed")
+                t0 = time.perf_counter()
             frame, move_s, settle_s, grab_s = self._capture(index, positions[index])
             try:
                 self.sink.put(frame)

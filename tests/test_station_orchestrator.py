@@ -28,6 +28,7 @@ from test_station_helpers import (
     simulated_truth,
 )
 
+from calibration.pipeline import FrameAnalyzer, SweepGeometry
 from station.events import JobEvent
 from station.jobs_cli import jobs_main
 from station.orchestrator import Orchestrator, ResultNotReady
@@ -132,6 +133,28 @@ def test_pause_at_a_step_boundary_then_resume_to_a_complete_archive(
         JobState.SUCCEEDED,
     ]
     assert trans[2].reason == "operator checks the board" and trans[3].reason == "board checked"
+
+
+def test_pause_before_the_white_image_then_resume(station: Orchestrator) -> None:
+    """A pause that lands before the white image: after resuming, the XY stage goes to the
+    white position again and the flat field is a real white image."""
+    job = station.submit(SHORT)
+    fired = threading.Event()
+
+    def listener(event: JobEvent) -> None:
+        if event.type == "phase" and event.data["phase"] == "preparing" and not fired.is_set():
+            fired.set()
+            station.pause(job.id)
+
+    station.add_listener(listener)
+    paused = station.wait_for(job.id, {JobState.PAUSED, *END}, timeout_s=60)
+    assert paused.state is JobState.PAUSED and paused.frames_done == 0
+    station.resume(job.id)
+    done = station.wait_for(job.id, END, timeout_s=60)
+    assert done.state is JobState.SUCCEEDED, done.last_error
+    archive = assert_complete_archive(station, job.id, 8)
+    geometry = SweepGeometry.from_manifest(archive.manifest)
+    FrameAnalyzer.from_white(geometry, archive.white())  # raises unless a white image
 
 
 def test_cancel_mid_sweep_keeps_frames_and_the_queue_moves_on(station: Orchestrator) -> None:
