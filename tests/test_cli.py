@@ -19,8 +19,9 @@ def test_devices_with_a_missing_config(capsys: pytest.CaptureFixture[str]) -> No
     assert "file not found" in capsys.readouterr().err
 
 
-def test_config_check_reports_file_key_and_reason(tmp_path: Path,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_config_check_reports_file_key_and_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[rail]\ndriver = "zaber"\nspeed = 3\n')
     assert main(["config", "check", str(bad)]) == 2

@@ -20,17 +20,27 @@ def setup():
     preset = fit_frame(get_preset("paper"), 2900, 1000)
     cam = preset.camera
     o = cam.optics
-    ctx = FrameContext(cam.image_grid, cam.lens_grid, cam.sensor.pp, o.delta, o.F, cam.board,
-                       0.8 * o.lens_pitch_px / 2)
-    mim = MicroImageMap(ctx.image_grid, (cam.sensor.height, cam.sensor.width),
-                        ctx.interior_radius_px)
+    ctx = FrameContext(
+        cam.image_grid,
+        cam.lens_grid,
+        cam.sensor.pp,
+        o.delta,
+        o.F,
+        cam.board,
+        0.8 * o.lens_pitch_px / 2,
+    )
+    mim = MicroImageMap(
+        ctx.image_grid, (cam.sensor.height, cam.sensor.width), ctx.interior_radius_px
+    )
     return cam, ctx, mim
 
 
 def _truth(cam, u):
     out = {}
-    for name, corner in (("standard", cam.board.standard_corner_mm),
-                         ("reference", cam.board.reference_corner_mm)):
+    for name, corner in (
+        ("standard", cam.board.standard_corner_mm),
+        ("reference", cam.board.reference_corner_mm),
+    ):
         for p in corner_images_px(cam, corner, u):
             out[(name, p["i"], p["j"])] = (p["x"], p["y"])
     return out
@@ -98,8 +108,9 @@ def test_noisy_micro_images_with_missing_hough_lines_are_kept(setup) -> None:
 def test_rejected_micro_images_carry_a_reason(setup) -> None:
     cam, ctx, mim = setup
     u = 280.0
-    res = analyze_frame(render_frame(cam, object_distance_mm=u, seed=2), ctx, u,
-                        micro_image_map=mim)
+    res = analyze_frame(
+        render_frame(cam, object_distance_mm=u, seed=2), ctx, u, micro_image_map=mim
+    )
     assert res.rejected, "micro-images near the rim must be rejected with a reason"
     assert all(isinstance(k, str) and k for k in res.rejected)
 
