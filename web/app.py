@@ -1,0 +1,130 @@
+"""The FastAPI application: REST under ``/api/v1``, SSE, and the operator page at ``/``.
+
+:func:`create_app` builds the app over a station (:class:`station.orchestrator.Orchestrator`).
+Routes stay thin: the station validates, queues and runs the sweeps; the app
+maps its answers to HTTP (:mod:`web.station_api`), checks API keys and body sizes
+(:mod:`web.security`), and serves images, the archive and the events.
+
+Middleware, outermost first: CORS (only when ``server.cors_origins`` is set),
+then :class:`web.security.ApiGuard` (API keys, body-size limit).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+from station.config import StationConfig
+from station.orchestrator import Orchestrator
+from web.errors import install_error_handlers
+from web.media import BytesCache
+from web.routes_jobs import build_jobs_router
+from web.routes_media import build_media_router
+from web.routes_system import build_system_router
+from web.schemas import SWEEP_FIELDS, sweep_body_model
+from web.security import API_KEY_HEADER, ApiGuard, ApiKeys
+from web.sse import EventBridge, build_events_router
+
+STATIC_DIR = Path(__file__).with_name("static")
+
+DESCRIPTION = """\
+Calibration station for focused plenoptic cameras: start a calibration sweep,
+follow it, and fetch the result (a, b, Q, p, the focus plane), plots, rendered
+images and the sweep archive.
+
+Mutating requests need an API key in the `X-API-Key` header (401 without one,
+403 for a key the server does not know). Every error is one JSON shape:
+`{"status", "code", "message", "fields": [{"field", "message"}], "context"}`.
+"""
+
+
+def create_app(
+    config: StationConfig,
+    *,
+    station: Orchestrator | None = None,
+    **station_options: Any,
+) -> FastAPI:
+    """The HTTP app over ``station``.
+
+    Args:
+        config: the station configuration (``[server]``: API keys, CORS, body limit).
+        station: a started orchestrator; the caller keeps ownership (starts and
+            closes it). None: the app makes one from ``config`` with
+            ``station_options`` (see :class:`~station.orchestrator.Orchestrator`),
+            starts it at startup and closes it at shutdown.
+    """
+    server = config.server
+    read_key = server.read_only_requires_key
+    owned = station is None
+    orchestrator = station if station is not None else Orchestrator(config, **station_options)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if owned:
+            orchestrator.start()
+        bridge = EventBridge(orchestrator)
+        app.state.events = bridge
+        try:
+            yield
+        finally:
+            bridge.close()
+            if owned:
+                orchestrator.close()
+
+    app = FastAPI(
+        title="lfcal-station",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url="/api/docs",
+        redoc_url=None,
+        openapi_url="/api/v1/openapi.json",
+    )
+    app.state.config = config
+    app.state.station = orchestrator
+    app.state.api_keys = ApiKeys(server.api_keys)
+    app.state.media_cache = BytesCache()
+    # the bridge also exists before startup (tests that skip the lifespan)
+    app.state.events = None
+
+    install_error_handlers(app, body_fields=SWEEP_FIELDS)
+    app.include_router(build_jobs_router(sweep_body_model(config), read_key=read_key))
+    app.include_router(build_events_router(read_key=read_key))
+    app.include_router(build_media_router(read_key=read_key))
+    app.include_router(build_system_router(read_key=read_key))
+
+    @app.get("/", include_in_schema=False)
+    def operator_page() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+
+    @app.get("/api", include_in_schema=False)
+    def api_root() -> RedirectResponse:
+        return RedirectResponse("/api/docs")
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    app.add_middleware(
+        ApiGuard,
+        keys=app.state.api_keys,
+        max_body_bytes=server.max_body_bytes,
+        read_only_requires_key=read_key,
+    )
+    if server.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(server.cors_origins),
+            allow_methods=["GET", "POST"],
+            allow_headers=[API_KEY_HEADER, "Content-Type", "Idempotency-Key", "Last-Event-ID"],
+            expose_headers=["Location"],
+        )
+    return app
+
+
+__all__ = ["create_app"]

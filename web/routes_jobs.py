@@ -1,0 +1,170 @@
+"""Job routes: submit, list, status, pause/resume/cancel, result.
+
+Handlers are plain functions (run in the server's thread pool): the station's
+methods are thread-safe and return quickly.
+"""
+
+# No ``from __future__ import annotations``: FastAPI needs the per-station body
+# model in the handler's annotation as a real object.
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Depends, Header, Path, Query, Request, Response
+from pydantic import BaseModel
+
+from station.orchestrator import Orchestrator
+from station.store import JobNotFound, JobState
+from web.errors import ApiError, error_responses
+from web.schemas import MAX_ID, CalibrationResult, JobList, JobOut
+from web.security import check_key
+from web.station_api import API, get_status, job_out, station_errors
+
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id")]
+IdempotencyKey = Annotated[
+    str | None,
+    Header(
+        alias="Idempotency-Key",
+        min_length=1,
+        max_length=200,
+        pattern=r"^[!-~]+$",
+        description="repeat a POST safely: the same key with the same sweep returns the same "
+        "job (printable ASCII, no spaces)",
+    ),
+]
+
+
+def station_of(request: Request) -> Orchestrator:
+    """The station behind the app."""
+    station: Orchestrator = request.app.state.station
+    return station
+
+
+def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRouter:
+    """The job routes for a station whose sweep body model is ``body_model``.
+
+    ``read_key``: read-only routes require the API key too (OpenAPI security).
+    """
+    write = [Depends(check_key)]
+    read = write if read_key else []
+    router = APIRouter(prefix=API, tags=["jobs"])
+
+    @router.post(
+        "/jobs",
+        status_code=202,
+        response_model=JobOut,
+        dependencies=write,
+        responses=error_responses(400, 401, 403, 409, 413, 415, 422, 503),
+        summary="Start a calibration run (queue a sweep)",
+    )
+    def create_job(
+        request: Request,
+        response: Response,
+        body: Annotated[body_model | None, Body()] = None,  # type: ignore[valid-type]
+        idempotency_key: IdempotencyKey = None,
+    ) -> JobOut:
+        """Queue a sweep; 202 with ``Location`` of the job. Every field is optional.
+
+        With an ``Idempotency-Key`` already used for the same sweep, the existing job is
+        returned (202); for a different sweep 409.
+        """
+        station = station_of(request)
+        data: dict[str, Any] = {} if body is None else body.model_dump(exclude_none=True)
+        with station_errors():
+            try:
+                status = station.submit(data, idempotency_key=idempotency_key)
+            except JobNotFound as exc:
+                message = f"there is no job {exc.job_id} to take the white image from"
+                raise ApiError(
+                    422,
+                    "invalid_request",
+                    f"the sweep cannot run: white_from_job: {message}",
+                    fields=[("white_from_job", message)],
+                ) from None
+            except RuntimeError as exc:
+                raise ApiError(503, "station_stopping", str(exc)) from None
+        response.headers["Location"] = f"{API}/jobs/{status.id}"
+        return job_out(status)
+
+    @router.get(
+        "/jobs",
+        response_model=JobList,
+        dependencies=read,
+        responses=error_responses(401, 403, 422),
+        summary="List jobs (optionally by state)",
+    )
+    def list_jobs(
+        request: Request,
+        state: Annotated[
+            list[JobState] | None,
+            Query(description="only jobs in this state (repeatable)"),
+        ] = None,
+        limit: Annotated[int, Query(ge=1, le=1000, description="at most this many (newest)")] = 100,
+    ) -> JobList:
+        """Jobs oldest first; the newest ``limit`` of them."""
+        jobs = station_of(request).jobs(states=set(state) if state else None)
+        return JobList(jobs=[job_out(j) for j in jobs[-limit:]])
+
+    @router.get(
+        "/jobs/{job_id}",
+        response_model=JobOut,
+        dependencies=read,
+        responses=error_responses(401, 403, 404, 422),
+        summary="A job's state and progress",
+    )
+    def get_job(request: Request, job_id: JobId) -> JobOut:
+        """State, frames done/total, rail position, ETA, last error."""
+        return get_status(station_of(request), job_id)
+
+    def _action(name: str, summary: str, doc: str) -> None:
+        def handler(request: Request, job_id: JobId) -> JobOut:
+            station = station_of(request)
+            with station_errors():
+                status = getattr(station, name)(job_id)
+            return job_out(status)
+
+        handler.__name__ = f"{name}_job"
+        handler.__doc__ = doc
+        router.add_api_route(
+            f"/jobs/{{job_id}}/{name}",
+            handler,
+            methods=["POST"],
+            response_model=JobOut,
+            dependencies=write,
+            responses=error_responses(400, 401, 403, 404, 409, 413, 415, 422),
+            summary=summary,
+        )
+
+    _action(
+        "pause",
+        "Pause a running job",
+        "Pause at the next step boundary (409 unless running; pausing a paused job is a no-op).",
+    )
+    _action(
+        "resume",
+        "Resume a paused job (or re-queue an interrupted/failed one)",
+        "Resume a paused job, or re-queue an interrupted or failed one (409 otherwise).",
+    )
+    _action(
+        "cancel",
+        "Cancel a job",
+        "Cancel: queued or interrupted at once, running or paused at the next step boundary "
+        "(409 for a finished job).",
+    )
+
+    @router.get(
+        "/jobs/{job_id}/result",
+        response_model=CalibrationResult,
+        dependencies=read,
+        responses=error_responses(401, 403, 404, 409, 422),
+        summary="The calibration result (409 until the job succeeded)",
+    )
+    def get_result(request: Request, job_id: JobId) -> CalibrationResult:
+        """a, b, Q, p, focus plane, uncertainties and the per-frame values (``frames``)."""
+        with station_errors():
+            result = station_of(request).result(job_id)
+        return CalibrationResult.model_validate(result)
+
+    return router
+
+
+__all__ = ["build_jobs_router", "station_of"]

@@ -1,0 +1,90 @@
+"""The thin adapter between the routes and the station (:class:`station.orchestrator.Orchestrator`).
+
+It maps the station's typed errors onto HTTP answers (:class:`web.errors.ApiError`)
+and the station's :class:`~station.orchestrator.JobStatus` onto :class:`web.schemas.JobOut`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from station.orchestrator import FrameNotFound, JobStatus, Orchestrator, ResultNotReady
+from station.store import IdempotencyConflict, InvalidTransition, JobNotFound
+from station.sweep import RequestInvalid
+from web.errors import ApiError
+from web.schemas import JobLinks, JobOut
+
+API = "/api/v1"
+
+
+@contextmanager
+def station_errors() -> Iterator[None]:
+    """Turn the station's exceptions into :class:`ApiError` (404, 409, 422, 503)."""
+    try:
+        yield
+    except JobNotFound as exc:
+        raise ApiError(404, "job_not_found", f"{exc}: list the jobs with GET {API}/jobs") from None
+    except FrameNotFound as exc:
+        raise ApiError(
+            404,
+            "frame_not_found",
+            f"{exc}; GET {API}/jobs/{exc.job_id} shows frames_done (indices start at 0)",
+        ) from None
+    except InvalidTransition as exc:
+        raise ApiError(409, "invalid_transition", str(exc), context=_state(exc)) from None
+    except ResultNotReady as exc:
+        raise ApiError(
+            409, "result_not_ready", str(exc), context={"state": exc.state.value}
+        ) from None
+    except IdempotencyConflict as exc:
+        raise ApiError(
+            409,
+            "idempotency_conflict",
+            f"{exc}; use a new Idempotency-Key for a different sweep",
+            context={"job_id": exc.job_id},
+        ) from None
+    except RequestInvalid as exc:
+        summary = "; ".join(f"{f}: {m}" for f, m in exc.problems)
+        raise ApiError(
+            422,
+            "invalid_request",
+            f"the sweep cannot run: {summary}",
+            fields=exc.problems,
+        ) from None
+
+
+def _state(exc: InvalidTransition) -> dict[str, Any]:
+    return {"state": exc.from_state.value}
+
+
+def links(job_id: int) -> JobLinks:
+    """URLs of a job's resources."""
+    base = f"{API}/jobs/{job_id}"
+    return JobLinks(
+        self=base,
+        events=f"{base}/events",
+        result=f"{base}/result",
+        archive=f"{base}/archive",
+        focus_plot=f"{base}/plots/focus.png",
+        disparity_plot=f"{base}/plots/disparity.png",
+        render_calibrated=f"{base}/render.png?p=calibrated",
+        render_designed=f"{base}/render.png?p=designed",
+    )
+
+
+def job_out(status: JobStatus) -> JobOut:
+    """The API view of a job status."""
+    data = status.to_dict()
+    data["links"] = links(status.id)
+    return JobOut.model_validate(data)
+
+
+def get_status(station: Orchestrator, job_id: int) -> JobOut:
+    """A job's status (404 if unknown)."""
+    with station_errors():
+        return job_out(station.status(job_id))
+
+
+__all__ = ["API", "get_status", "job_out", "links", "station_errors"]
