@@ -117,7 +117,7 @@ def run(frames: int = 100, width: int = WIDTH, height: int = HEIGHT) -> list[dic
             TARGET_RESULT_S,
         ),
         _row("rail move per step (driver, 1 mm), median", move, "ms"),
-        _row("camera grab per step (simulated, cached), median", grab, "ms"),
+        _row("camera grab per step (simulated; cached after the first run), median", grab, "ms"),
         _row(f"sweep job wall time ({label})", wall, "s"),
         _row("calibrated b (simulator truth 3.0 mm)", float(result["b_mm"]), "mm"),
         _row(

@@ -445,7 +445,7 @@ class SweepRun:
         settings = self._with_policy(
             "configuring the camera", lambda: self.dev.camera.configure(wanted)
         )
-        info = self.dev.camera.info()
+        info = self._with_policy("reading the camera's identity", self.dev.camera.info)
         roi = settings.roi or Roi(info.sensor_width, info.sensor_height)
         depth = bit_depth(settings.pixel_format)
         self.settings = settings
