@@ -98,3 +98,17 @@ def test_frame_sanity_check() -> None:
     hot[:40] = 4095
     with pytest.raises(FrameRejected, match=r"saturated: 10\.0 % of its pixels"):
         check_frame(hot, 12, what="frame")
+
+
+def test_sweep_cli_lists_every_problem_and_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from station.jobs_cli import sweep_main
+
+    cfg = write_config(tmp_path)
+    args = ["--config", str(cfg), "--start", "50", "--stop", "10", "--step", "0"]
+    assert sweep_main([*args, "--emulator-speedup", "50"]) == 2
+    err = capsys.readouterr().err
+    assert "step_mm: must be greater than 0 mm" in err
+    assert "stop_mm: must not be below start_mm (50 mm), got 10 mm" in err
+    assert sweep_main(["--config", str(tmp_path / "missing.toml")]) == 2
