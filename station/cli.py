@@ -310,6 +310,18 @@ def cmd_devices(args: argparse.Namespace) -> int:
     return devices_main(args.config, home=args.home)
 
 
+def cmd_sweep(args: argparse.Namespace, rest: list[str]) -> int:
+    from station.jobs_cli import sweep_main
+
+    return sweep_main(rest)
+
+
+def cmd_jobs(args: argparse.Namespace, rest: list[str]) -> int:
+    from station.jobs_cli import jobs_main
+
+    return jobs_main(rest)
+
+
 def cmd_emulate_stage(args: argparse.Namespace, rest: list[str]) -> int:
     # the emulator is simulated code: loaded by name so production code never imports it
     module = importlib.import_module("drivers.sim.emulate_stage_cli")
@@ -392,6 +404,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("file")
     c.set_defaults(func=cmd_config_check)
 
+    sub.add_parser(
+        "sweep",
+        add_help=False,
+        help="run a calibration sweep without the server (lfcal sweep --help)",
+    )
+    sub.add_parser("jobs", add_help=False, help="list stored jobs (lfcal jobs --help)")
+
     p = sub.add_parser("devices", help="connect to every configured device and describe it")
     p.add_argument("--config", default="config/simulated.toml", help="station configuration")
     p.add_argument("--home", action="store_true", help="home the stages first (moves them)")
@@ -419,8 +438,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    if argv and argv[0] == "emulate-stage":
-        return cmd_emulate_stage(argparse.Namespace(), argv[1:])
+    passthrough = {"emulate-stage": cmd_emulate_stage, "sweep": cmd_sweep, "jobs": cmd_jobs}
+    if argv and argv[0] in passthrough:
+        return passthrough[argv[0]](argparse.Namespace(), argv[1:])
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

@@ -11,7 +11,16 @@ from station.cli import build_parser, main
 
 def test_subcommands_are_registered() -> None:
     choices = build_parser()._subparsers._group_actions[0].choices  # type: ignore[union-attr]
-    assert {"simulate", "calibrate", "config", "devices", "emulate-stage", "demo"} <= set(choices)
+    assert {
+        "simulate",
+        "calibrate",
+        "config",
+        "devices",
+        "emulate-stage",
+        "demo",
+        "sweep",
+        "jobs",
+    } <= set(choices)
 
 
 def test_devices_with_a_missing_config(capsys: pytest.CaptureFixture[str]) -> None:
@@ -34,3 +43,11 @@ def test_shipped_configs_pass_the_check(capsys: pytest.CaptureFixture[str]) -> N
     for name in ("simulated.toml", "lab-example.toml"):
         assert main(["config", "check", str(root / "config" / name)]) == 0
     assert capsys.readouterr().out.count("OK") == 2
+
+
+def test_sweep_and_jobs_are_reachable(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["jobs", "--db", str(tmp_path / "none.sqlite")]) == 2
+    assert "no job database" in capsys.readouterr().err
+    assert not (tmp_path / "none.sqlite").exists()  # listing never creates a database
+    assert main(["sweep", "--config", "/nonexistent/station.toml"]) == 2
+    assert "file not found" in capsys.readouterr().err
