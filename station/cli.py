@@ -322,6 +322,12 @@ def cmd_jobs(args: argparse.Namespace, rest: list[str]) -> int:
     return jobs_main(rest)
 
 
+def cmd_serve(args: argparse.Namespace, rest: list[str]) -> int:
+    # the web layer sits above the station: loaded by name so station never imports web
+    module = importlib.import_module("web.server")
+    return int(module.serve_main(rest))
+
+
 def cmd_emulate_stage(args: argparse.Namespace, rest: list[str]) -> int:
     # the emulator is simulated code: loaded by name so production code never imports it
     module = importlib.import_module("drivers.sim.emulate_stage_cli")
@@ -410,6 +416,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="run a calibration sweep without the server (lfcal sweep --help)",
     )
     sub.add_parser("jobs", add_help=False, help="list stored jobs (lfcal jobs --help)")
+    sub.add_parser(
+        "serve",
+        add_help=False,
+        help="start the HTTP service and operator page (lfcal serve --help)",
+    )
 
     p = sub.add_parser("devices", help="connect to every configured device and describe it")
     p.add_argument("--config", default="config/simulated.toml", help="station configuration")
@@ -438,7 +449,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    passthrough = {"emulate-stage": cmd_emulate_stage, "sweep": cmd_sweep, "jobs": cmd_jobs}
+    passthrough = {
+        "emulate-stage": cmd_emulate_stage,
+        "sweep": cmd_sweep,
+        "jobs": cmd_jobs,
+        "serve": cmd_serve,
+    }
     if argv and argv[0] in passthrough:
         return passthrough[argv[0]](argparse.Namespace(), argv[1:])
     args = parser.parse_args(argv)
