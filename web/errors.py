@@ -190,6 +190,16 @@ def _json_problem(errors: Sequence[Mapping[str, Any]]) -> str | None:
 # ----------------------------------------------------------------- handlers
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route accepts for the request's path (for ``Allow`` on 405)."""
+    methods: set[str] = set()
+    for route in request.app.routes:
+        regex = getattr(route, "path_regex", None)
+        if regex is not None and regex.match(request.url.path):
+            methods |= set(getattr(route, "methods", None) or ())
+    return sorted(methods)
+
+
 def install_error_handlers(app: FastAPI, *, body_fields: Sequence[str] = ()) -> None:
     """Answer every error with :class:`ErrorBody` (validation, HTTP, ApiError, crashes)."""
 
@@ -221,8 +231,14 @@ def install_error_handlers(app: FastAPI, *, body_fields: Sequence[str] = ()) -> 
             message = f"no such resource: {request.url.path} (the API is under /api/v1)"
             code = "not_found"
         elif status == 405:
+            allowed = allowed_methods(request)
             message = f"{request.method} is not allowed on {request.url.path}"
+            if allowed:
+                message += f" (use {', '.join(m for m in allowed if m != 'HEAD')})"
             code = "method_not_allowed"
+            headers = dict(exc.headers or {})
+            headers["Allow"] = ", ".join(allowed)
+            return error_response(status, code, message, headers=headers)
         else:
             message = str(exc.detail)
             code = "http_error"

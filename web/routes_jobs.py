@@ -9,17 +9,16 @@ methods are thread-safe and return quickly.
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
 from pydantic import BaseModel
 
 from station.orchestrator import Orchestrator
 from station.store import JobNotFound, JobState
 from web.errors import ApiError, error_responses
-from web.schemas import MAX_ID, CalibrationResult, JobList, JobOut
+from web.schemas import CalibrationResult, JobId, JobList, JobOut
 from web.security import check_key
 from web.station_api import API, get_status, job_out, station_errors
 
-JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id")]
 IdempotencyKey = Annotated[
     str | None,
     Header(

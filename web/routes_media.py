@@ -23,11 +23,10 @@ from web.media import (
     rendered_png,
     zip_stream,
 )
-from web.schemas import MAX_ID
+from web.schemas import JobId
 from web.security import check_key
 from web.station_api import API, station_errors
 
-JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id")]
 PNG = {"content": {"image/png": {}}, "description": "a PNG image"}
 NO_STORE = {"Cache-Control": "no-store"}
 IMMUTABLE = {"Cache-Control": "private, max-age=3600"}
@@ -74,7 +73,9 @@ def build_media_router(*, read_key: bool) -> APIRouter:
     def frame_preview(
         request: Request,
         job_id: JobId,
-        index: Annotated[int, Path(ge=0, le=HARD_MAX_FRAMES, description="frame index")],
+        index: Annotated[
+            int, Path(ge=0, le=HARD_MAX_FRAMES, description="frame index", examples=[0])
+        ],
         width: Annotated[
             int, Query(ge=16, le=8192, description="largest width of the preview (px)")
         ] = 640,

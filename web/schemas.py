@@ -10,16 +10,23 @@ come back as 422 with the same field-level shape.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
+from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from station.config import StationConfig
 from station.store import JobState
 from station.sweep import HARD_MAX_FRAMES
 
+MIN_STEP_MM = 0.001
+"""Smallest rail step accepted (1 µm; a Zaber microstep is about 0.05 µm)."""
+
 MAX_ID = 2**53
 """Largest job id accepted in a path (larger ones cannot exist)."""
+
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id", examples=[1])]
+"""A job id in a path."""
 
 SWEEP_FIELDS = (
     "start_mm",
@@ -69,9 +76,10 @@ def sweep_body_model(config: StationConfig) -> type[BaseModel]:
             float | None,
             Field(
                 default=None,
-                gt=0,
+                ge=MIN_STEP_MM,
                 le=hi - lo,
-                description=f"rail step between frames (mm); default {sw.step_mm:g}; at most "
+                description=f"rail step between frames (mm), at least {MIN_STEP_MM:g} mm; "
+                f"default {sw.step_mm:g}; at most "
                 f"{max_frames} frames",
                 examples=[sw.step_mm],
                 json_schema_extra={"x-max-frames": max_frames},
@@ -200,6 +208,7 @@ class DevicesOut(BaseModel):
 
 __all__ = [
     "MAX_ID",
+    "JobId",
     "SWEEP_FIELDS",
     "CalibrationResult",
     "DevicesOut",

@@ -5,7 +5,7 @@ request under ``/api/``:
 
 1. **API key** (``X-API-Key``) on every mutating request (POST, PUT, PATCH,
    DELETE), and on read-only requests too when ``server.read_only_requires_key``
-   is set (``/api/v1/healthz`` stays open). No key: 401; a key that is not one of
+   is set (``/api/v1/healthz`` and the OpenAPI document stay open). No key: 401; a key that is not one of
    the configured ones: 403 (compared in constant time). When no key is
    configured at all, mutating requests are refused with 403 and a message
    saying how to configure one. Keys are never logged or echoed.
@@ -33,8 +33,8 @@ from web.errors import ApiError, error_bytes
 
 API_KEY_HEADER = "X-API-Key"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-OPEN_PATHS = frozenset({"/api/v1/healthz"})
-"""API paths that never need a key."""
+OPEN_PATHS = frozenset({"/api/v1/healthz", "/api/v1/openapi.json", "/api/docs", "/api"})
+"""API paths that never need a key (no station data: liveness, the API description)."""
 
 api_key_header = APIKeyHeader(
     name=API_KEY_HEADER,

@@ -25,14 +25,14 @@ import threading
 from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Header, Path, Query, Request
+from fastapi import APIRouter, Depends, Header, Query, Request
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from station.events import JobEvent
 from station.orchestrator import FINAL_STATES, Orchestrator
 from web.errors import error_responses
-from web.schemas import MAX_ID
+from web.schemas import JobId
 from web.security import check_key
 from web.station_api import API, station_errors
 
@@ -181,7 +181,7 @@ def build_events_router(*, read_key: bool) -> APIRouter:
     )
     async def events(
         request: Request,
-        job_id: Annotated[int, Path(ge=1, le=MAX_ID, description="job id")],
+        job_id: JobId,
         last_event_id: Annotated[
             int | None,
             Header(alias="Last-Event-ID", ge=-1, le=10**9, description="last step index seen"),
