@@ -137,6 +137,8 @@ def find_junctions(
     to a band of rows (sensor pixels).
     """
     r0, r1 = (0, mim.shape[0]) if rows is None else (max(0, rows[0]), min(mim.shape[0], rows[1]))
+    if r1 <= r0:
+        return Junctions(*(np.empty(0, dtype=t) for t in (np.int64, np.int64, float, float, float)))
     pad = int(np.ceil(4 * sigma_px)) + 2
     p0, p1 = max(0, r0 - pad), min(mim.shape[0], r1 + pad)
     img = np.asarray(frame[p0:p1], dtype=np.float32)
