@@ -17,7 +17,7 @@ from station.store import JobNotFound, JobState
 from web.errors import ApiError, error_responses
 from web.schemas import CalibrationResult, JobId, JobList, JobOut
 from web.security import check_key
-from web.station_api import API, get_status, job_out, station_errors
+from web.station_api import API, job_out, station_errors, status_response
 
 IdempotencyKey = Annotated[
     str | None,
@@ -110,9 +110,9 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         responses=error_responses(401, 403, 404, 422),
         summary="A job's state and progress",
     )
-    def get_job(request: Request, job_id: JobId) -> JobOut:
+    def get_job(request: Request, job_id: JobId) -> Response:
         """State, frames done/total, rail position, ETA, last error."""
-        return get_status(station_of(request), job_id)
+        return status_response(station_of(request), job_id)
 
     def _action(name: str, summary: str, doc: str) -> None:
         def handler(request: Request, job_id: JobId) -> JobOut:

@@ -10,6 +10,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from fastapi.responses import JSONResponse
+
 from station.orchestrator import FrameNotFound, JobStatus, Orchestrator, ResultNotReady
 from station.store import IdempotencyConflict, InvalidTransition, JobNotFound
 from station.sweep import RequestInvalid
@@ -59,32 +61,47 @@ def _state(exc: InvalidTransition) -> dict[str, Any]:
     return {"state": exc.from_state.value}
 
 
+def links_dict(job_id: int) -> dict[str, str]:
+    """URLs of a job's resources (the :class:`JobLinks` shape)."""
+    base = f"{API}/jobs/{job_id}"
+    return {
+        "self": base,
+        "events": f"{base}/events",
+        "result": f"{base}/result",
+        "archive": f"{base}/archive",
+        "focus_plot": f"{base}/plots/focus.png",
+        "disparity_plot": f"{base}/plots/disparity.png",
+        "render_calibrated": f"{base}/render.png?p=calibrated",
+        "render_designed": f"{base}/render.png?p=designed",
+    }
+
+
 def links(job_id: int) -> JobLinks:
     """URLs of a job's resources."""
-    base = f"{API}/jobs/{job_id}"
-    return JobLinks(
-        self=base,
-        events=f"{base}/events",
-        result=f"{base}/result",
-        archive=f"{base}/archive",
-        focus_plot=f"{base}/plots/focus.png",
-        disparity_plot=f"{base}/plots/disparity.png",
-        render_calibrated=f"{base}/render.png?p=calibrated",
-        render_designed=f"{base}/render.png?p=designed",
-    )
+    return JobLinks.model_validate(links_dict(job_id))
+
+
+_JOB_FIELDS = tuple(JobOut.model_fields)
+
+
+def job_dict(status: JobStatus) -> dict[str, Any]:
+    """The API view of a job status as a JSON-ready dict (the :class:`JobOut` shape),
+    without model validation: the status route is the one clients poll."""
+    data = status.to_dict()
+    data["links"] = links_dict(status.id)
+    return {k: data.get(k) for k in _JOB_FIELDS}
 
 
 def job_out(status: JobStatus) -> JobOut:
     """The API view of a job status."""
-    data = status.to_dict()
-    data["links"] = links(status.id)
-    return JobOut.model_validate(data)
+    return JobOut.model_validate(job_dict(status))
 
 
-def get_status(station: Orchestrator, job_id: int) -> JobOut:
-    """A job's status (404 if unknown)."""
+def status_response(station: Orchestrator, job_id: int) -> JSONResponse:
+    """``GET /jobs/{id}``: the job's status (404 if unknown), serialised directly."""
     with station_errors():
-        return job_out(station.status(job_id))
+        status = station.status(job_id)
+    return JSONResponse(job_dict(status))
 
 
-__all__ = ["API", "get_status", "job_out", "links", "station_errors"]
+__all__ = ["API", "job_dict", "job_out", "links", "station_errors", "status_response"]
