@@ -337,27 +337,175 @@ def cmd_emulate_stage(args: argparse.Namespace, rest: list[str]) -> int:
 # -------------------------------------------------------------------------------- demo
 
 
+def _http(
+    method: str,
+    url: str,
+    *,
+    key: str | None = None,
+    body: dict[str, Any] | None = None,
+    timeout_s: float = 10.0,
+) -> tuple[int, dict[str, Any], dict[str, str]]:
+    """A small JSON HTTP client on the standard library (the demo talks to 127.0.0.1 only)."""
+    import urllib.error
+    import urllib.request
+
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(url, data=data, method=method)
+    req.add_header("Accept", "application/json")
+    if data is not None:
+        req.add_header("Content-Type", "application/json")
+    if key:
+        req.add_header("X-API-Key", key)
+    try:
+        with urllib.request.urlopen(req, timeout=timeout_s) as resp:  # noqa: S310 (loopback)
+            return resp.status, json.loads(resp.read() or b"{}"), dict(resp.headers)
+    except urllib.error.HTTPError as exc:
+        payload = exc.read()
+        try:
+            parsed = json.loads(payload or b"{}")
+        except ValueError:
+            parsed = {"detail": payload.decode(errors="replace")}
+        return exc.code, parsed, dict(exc.headers)
+
+
+def _demo_config(config_path: Path, out: Path) -> Path:
+    """A copy of the station configuration whose database and archives live under ``out``."""
+    import re
+
+    text = config_path.read_text(encoding="utf-8")
+    text = re.sub(r"(?m)^data_dir\s*=.*$", f'data_dir = "{(out / "data").resolve()}"', text)
+    text = re.sub(
+        r"(?m)^database\s*=.*$", f'database = "{(out / "data" / "lfcal.sqlite3").resolve()}"', text
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    copy = out / "station.toml"
+    copy.write_text(text, encoding="utf-8")
+    # relative paths (a .cti, a white image) keep pointing next to the original
+    return copy
+
+
+def _preset_truth(config_path: Path) -> dict[str, Any] | None:
+    """Ground truth of the simulated station's preset (None for real hardware)."""
+    from calibration.presets import get_preset
+    from station.config import load_config
+
+    cfg = load_config(config_path)
+    if cfg.camera.backend != "simulated":
+        return None
+    o = get_preset(cfg.camera.preset).camera.optics
+    u0 = o.u0
+    return {
+        "a_mm": o.a_f,
+        "b_mm": o.b,
+        "Q": o.Q_focus,
+        "patch_size_px": float(o.patch_px(u0)),
+        "focus": {
+            "object_distance_mm": u0,
+            "rail_mm": (u0 - cfg.rail.zero_object_distance_mm) / cfg.rail.direction,
+        },
+    }
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate a sweep of the simulated station and calibrate it."""
+    """Start the HTTP station on the simulated devices, run a calibration over HTTP, print it."""
+    import os
+    import secrets
+    import signal
+    import socket
+    import subprocess
+
+    from station.config import ConfigError, load_config
+
+    config_path = Path(args.config)
+    try:
+        load_config(config_path)
+    except ConfigError as exc:
+        raise UserError(f"{config_path}: " + "; ".join(exc.format_problems())) from None
     out = Path(args.out)
-    sweep_dir = out / "sweep"
-    sim_args = argparse.Namespace(
-        out=str(sweep_dir),
-        preset=args.preset,
-        frames=args.frames,
-        start_mm=None,
-        step_mm=None,
-        width=args.width,
-        height=args.height,
-        principal_point=None,
-        seed=args.seed,
-        overwrite=True,
+    demo_config = _demo_config(config_path, out)
+    key = secrets.token_hex(16)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = args.port or s.getsockname()[1]
+    base = f"http://127.0.0.1:{port}"
+    env = dict(os.environ, LFCAL_API_KEYS=key)
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from station.cli import main; sys.exit(main())",
+            "serve",
+            "--config",
+            str(demo_config),
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--emulator-speedup",
+            str(args.emulator_speedup),
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL if not args.verbose else None,
+        stderr=(out / "server.log").open("w") if not args.verbose else None,
     )
-    cmd_simulate(sim_args)
-    cal_args = argparse.Namespace(
-        sweep_dir=str(sweep_dir), out=str(out / "result.json"), plots=str(out / "plots")
-    )
-    return cmd_calibrate(cal_args)
+    try:
+        deadline = time.monotonic() + 120.0
+        while True:
+            if server.poll() is not None:
+                log = out / "server.log"
+                detail = log.read_text()[-2000:] if log.exists() else ""
+                raise UserError(f"the server exited with code {server.returncode}: {detail}")
+            try:
+                status, _, _ = _http("GET", f"{base}/api/v1/healthz", timeout_s=2.0)
+                if status == 200:
+                    break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                raise UserError("the server did not answer /api/v1/healthz within 120 s")
+            time.sleep(0.25)
+        print(f"server up at {base}/ (operator page); starting a calibration over HTTP")
+        body: dict[str, Any] = {}
+        if args.frames:
+            body = {"start_mm": 0.0, "stop_mm": 99.0, "step_mm": 99.0 / (args.frames - 1)}
+        status, job, headers = _http("POST", f"{base}/api/v1/jobs", key=key, body=body)
+        if status != 202:
+            raise UserError(f"POST /api/v1/jobs answered {status}: {job}")
+        location = headers.get("Location") or headers.get("location") or f"/api/v1/jobs/{job['id']}"
+        url = location if location.startswith("http") else base + location
+        report = _progress("sweep")
+        shown = -1
+        while True:
+            status, job, _ = _http("GET", url)
+            if status != 200:
+                raise UserError(f"GET {url} answered {status}: {job}")
+            done = int(job.get("frames_done") or 0)
+            if job.get("frames_total") and done != shown:
+                report(done, int(job["frames_total"]))
+                shown = done
+            if job["state"] in ("succeeded", "failed", "cancelled", "interrupted"):
+                break
+            time.sleep(1.0)
+        if job["state"] != "succeeded":
+            print(f"the job ended {job['state']}: {job.get('last_error')}", file=sys.stderr)
+            return EXIT_CALIBRATION_FAILED
+        status, result, _ = _http("GET", f"{url}/result")
+        if status != 200:
+            raise UserError(f"GET {url}/result answered {status}: {result}")
+        print(summary_table(result, _preset_truth(config_path)))
+        _write_json(out / "result.json", result)
+        print(f"result written to {out / 'result.json'}; archive in {job.get('archive_dir')}")
+        if args.keep_serving:
+            print(f"operator page: {base}/  (API key for this run: {key}); Ctrl-C stops the server")
+            server.wait()
+        return EXIT_OK
+    finally:
+        if server.poll() is None:
+            server.send_signal(signal.SIGINT)
+            try:
+                server.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                server.kill()
 
 
 # -------------------------------------------------------------------------------- main
@@ -434,14 +582,31 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_emulate_stage, passthrough=True)
 
-    p = sub.add_parser("demo", help="simulate a sweep of the simulated station and calibrate it")
+    p = sub.add_parser(
+        "demo",
+        help="start the HTTP station on the simulated devices, calibrate over HTTP, print it",
+    )
     p.add_argument("--config", default="config/simulated.toml", help="station configuration")
     p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
-    p.add_argument("--preset", default="paper")
-    p.add_argument("--frames", type=int, default=100)
-    p.add_argument("--width", type=int, default=3000)
-    p.add_argument("--height", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames over the rail's 0..99 mm (default: the configuration's sweep)",
+    )
+    p.add_argument("--port", type=int, default=None, help="port (default: a free one)")
+    p.add_argument(
+        "--emulator-speedup",
+        type=float,
+        default=1.0,
+        help="run the emulated stages K times faster than real time",
+    )
+    p.add_argument(
+        "--keep-serving",
+        action="store_true",
+        help="leave the server (and the operator page) up until Ctrl-C",
+    )
+    p.add_argument("--verbose", action="store_true", help="show the server's log")
     p.set_defaults(func=cmd_demo)
     return parser
 
