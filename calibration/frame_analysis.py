@@ -249,10 +249,10 @@ def analyze_frame(
     # search a band of rows first, the whole frame only when the band shows neither
     half_band = int(SEARCH_BAND_PITCHES * ctx.image_grid.pitch_px)
     cy = int(round(ctx.principal_point_px[1]))
-    band = (max(0, cy - half_band), min(frame.shape[0], cy + half_band + 1))
+    first = (max(0, cy - half_band), min(int(frame.shape[0]), cy + half_band + 1))
     bands: list[tuple[int, int] | None] = [None]
-    if band[1] - band[0] > 0 and band != (0, frame.shape[0]):
-        bands.insert(0, band)
+    if first[1] - first[0] > 0 and first != (0, frame.shape[0]):
+        bands.insert(0, first)
     wanted: dict[tuple[int, int], list[CornerMeasurement]] = {}
     for band in bands:
         junctions = find_junctions(frame, mim, sigma_px=ctx.options.saddle_sigma_px, rows=band)
