@@ -100,8 +100,15 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         limit: Annotated[int, Query(ge=1, le=1000, description="at most this many (newest)")] = 100,
     ) -> JobList:
         """Jobs oldest first; the newest ``limit`` of them."""
-        jobs = station_of(request).jobs(states=set(state) if state else None)
-        return JobList(jobs=[job_out(j) for j in jobs[-limit:]])
+        station = station_of(request)
+        records = station.store.list_jobs(states=set(state) if state else None)[-limit:]
+        out = []
+        for record in records:
+            try:
+                out.append(job_out(station.status(record.id)))
+            except KeyError:  # vanished meanwhile (never in practice: jobs are not deleted)
+                continue
+        return JobList(jobs=out)
 
     @router.get(
         "/jobs/{job_id}",
