@@ -7,6 +7,5 @@
 - :mod:`web.station_api` -- the station's errors and statuses as HTTP answers
 - :mod:`web.security` -- API keys, body-size limit; :mod:`web.errors` -- one error shape
 - :mod:`web.media` -- previews, rendering, the archive zip
-- :mod:`web.demo` -- a calibration over HTTP from start to finish
 - ``web/static/`` -- the operator page (plain HTML, CSS, JavaScript)
 """
