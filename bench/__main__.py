@@ -11,7 +11,7 @@ import importlib
 import sys
 from typing import Any
 
-ALL = ("simulator", "mla", "accuracy", "speed", "render", "serial", "camera", "station")
+ALL = ("simulator", "mla", "accuracy", "speed", "render", "serial", "camera", "station", "web")
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:

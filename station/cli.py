@@ -409,10 +409,11 @@ def _preset_truth(config_path: Path) -> dict[str, Any] | None:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Start the HTTP station on the simulated devices, run a calibration over HTTP, print it."""
     import os
+    import queue
     import secrets
     import signal
-    import socket
     import subprocess
+    import threading
 
     from station.config import ConfigError, load_config
 
@@ -424,11 +425,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     demo_config = _demo_config(config_path, out)
     key = secrets.token_hex(16)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = args.port or s.getsockname()[1]
-    base = f"http://127.0.0.1:{port}"
     env = dict(os.environ, LFCAL_API_KEYS=key)
+    log = (out / "server.log").open("w")
     server = subprocess.Popen(
         [
             sys.executable,
@@ -440,21 +438,42 @@ def cmd_demo(args: argparse.Namespace) -> int:
             "--host",
             "127.0.0.1",
             "--port",
-            str(port),
+            str(args.port or 0),
             "--emulator-speedup",
             str(args.emulator_speedup),
         ],
         env=env,
-        stdout=subprocess.DEVNULL if not args.verbose else None,
-        stderr=(out / "server.log").open("w") if not args.verbose else None,
+        stdout=subprocess.PIPE,
+        stderr=None if args.verbose else log,
+        text=True,
     )
+    lines: queue.Queue[str] = queue.Queue()
+
+    def pump() -> None:  # the server's stdout: its first line says where it listens
+        assert server.stdout is not None
+        for line in server.stdout:
+            lines.put(line)
+            if args.verbose:
+                print(line, end="")
+
+    threading.Thread(target=pump, daemon=True).start()
     try:
+        base = ""
         deadline = time.monotonic() + 120.0
-        while True:
-            if server.poll() is not None:
-                log = out / "server.log"
-                detail = log.read_text()[-2000:] if log.exists() else ""
+        while not base:
+            try:
+                line = lines.get(timeout=0.5)
+            except queue.Empty:
+                line = ""
+            if "listening on" in line:
+                base = line.split("listening on", 1)[1].strip().rstrip("/")
+            elif server.poll() is not None:
+                log.flush()
+                detail = (out / "server.log").read_text()[-2000:]
                 raise UserError(f"the server exited with code {server.returncode}: {detail}")
+            elif time.monotonic() > deadline:
+                raise UserError("the server did not start listening within 120 s")
+        while True:
             try:
                 status, _, _ = _http("GET", f"{base}/api/v1/healthz", timeout_s=2.0)
                 if status == 200:
@@ -506,6 +525,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                 server.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 server.kill()
+        log.close()
 
 
 # -------------------------------------------------------------------------------- main

@@ -112,7 +112,10 @@ def frame_count(start_mm: float, stop_mm: float, step_mm: float) -> int:
     """Rail positions from ``start_mm`` to ``stop_mm`` (inclusive) in ``step_mm`` steps (mm)."""
     if stop_mm < start_mm or not step_mm > 0:
         return 0
-    return int(math.floor((stop_mm - start_mm) / step_mm + _EPS)) + 1
+    count = (stop_mm - start_mm) / step_mm + _EPS
+    if not math.isfinite(count) or count > 1e9:
+        return 1_000_000_000  # absurdly many: the frame limit rejects it with a clear message
+    return int(math.floor(count)) + 1
 
 
 def parse_request(data: SweepRequest | dict[str, Any] | None) -> SweepRequest:

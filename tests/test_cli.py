@@ -51,3 +51,18 @@ def test_sweep_and_jobs_are_reachable(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not (tmp_path / "none.sqlite").exists()  # listing never creates a database
     assert main(["sweep", "--config", "/nonexistent/station.toml"]) == 2
     assert "file not found" in capsys.readouterr().err
+
+
+def test_sweep_with_a_vanishing_step_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "config" / "simulated.toml").read_text()
+    text = text.replace('data_dir = "../data"', f'data_dir = "{tmp_path}"')
+    text = text.replace('database = "../data/lfcal.sqlite3"', f'database = "{tmp_path}/db.sqlite3"')
+    config = tmp_path / "station.toml"
+    config.write_text(text)
+    code = main(["sweep", "--config", str(config), "--step", "1e-320"])
+    assert code == 2
+    assert "at most 2000" in capsys.readouterr().err
+    assert not (root / "data").exists()
