@@ -46,6 +46,7 @@ import socket
 import threading
 import time
 import tty
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -108,18 +109,20 @@ class DeviceSpec:
 # --------------------------------------------------------------------------- kinematics
 
 
-class _Profile:
+class _Profile(ABC):
     """1-D motion: position/velocity as functions of (scaled) time."""
 
     t0: float
     end_time: float
     end_pos: float
 
+    @abstractmethod
     def position(self, t: float) -> float:
-        raise NotImplementedError
+        """Position (microsteps) at time ``t``."""
 
+    @abstractmethod
     def velocity(self, t: float) -> float:
-        raise NotImplementedError
+        """Velocity (microsteps per second) at time ``t``."""
 
 
 class _Trapezoid(_Profile):
