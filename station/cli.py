@@ -171,8 +171,8 @@ def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -
     focus = result.get("focus", {})
     mla = result.get("mla", {})
     rows: list[tuple[str, str, str, str]] = [
-        ("a (mm)", _fmt(result.get("a_mm")), _fmt(unc.get("a_mm")), "a_mm"),
-        ("b (mm)", _fmt(result.get("b_mm")), _fmt(unc.get("b_mm")), "b_mm"),
+        ("a (mm)", _fmt(result.get("a_mm"), 5), _fmt(unc.get("a_mm"), 5), "a_mm"),
+        ("b (mm)", _fmt(result.get("b_mm"), 5), _fmt(unc.get("b_mm"), 5), "b_mm"),
         ("Q = b/a", _fmt(result.get("Q"), 6), _fmt(unc.get("Q"), 6), "Q"),
         (
             "patch size p (px)",
