@@ -42,11 +42,12 @@ import time
 import types
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 
 from drivers.camera import (
+    CameraContext,
     CameraInfo,
     CameraSettings,
     Frame,
@@ -319,7 +320,7 @@ def _drop_all(objects: list[Any]) -> None:
         objects.pop()
 
 
-class AravisCamera:
+class AravisCamera(CameraContext):
     """A GenICam camera through Aravis 0.8 (GigE Vision), software-triggered.
 
     Args:
@@ -412,18 +413,6 @@ class AravisCamera:
             self._sfnc = None
             self._lost = False
             _drop_all(objects)
-
-    def __enter__(self) -> Self:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: types.TracebackType | None,
-    ) -> None:
-        self.close()
 
     def info(self) -> CameraInfo:
         """Identity and capabilities, read at open."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import types
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Protocol, Self, runtime_checkable
 
@@ -167,6 +168,30 @@ class Frame:
 
 
 # --------------------------------------------------------------------------- interface
+
+
+class CameraContext(ABC):
+    """``with camera:`` opens the camera and closes it on exit (shared by the backends)."""
+
+    @abstractmethod
+    def open(self) -> None:
+        """Connect to the camera."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the camera."""
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: types.TracebackType | None,
+    ) -> None:
+        self.close()
 
 
 @runtime_checkable

@@ -27,11 +27,12 @@ import types
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 
 from drivers.camera import (
+    CameraContext,
     CameraInfo,
     CameraSettings,
     Frame,
@@ -185,7 +186,7 @@ class _HarvestersNodes:
         return None
 
 
-class HarvestersCamera:
+class HarvestersCamera(CameraContext):
     """A GenICam camera through a GenTL producer with harvesters, software-triggered.
 
     Args:
@@ -244,18 +245,6 @@ class HarvestersCamera:
         with self._lock:
             self._release()
             self._lost = False
-
-    def __enter__(self) -> Self:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: types.TracebackType | None,
-    ) -> None:
-        self.close()
 
     def info(self) -> CameraInfo:
         """Identity and capabilities, read at open."""

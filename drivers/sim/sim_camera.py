@@ -43,16 +43,15 @@ from __future__ import annotations
 import math
 import threading
 import time
-import types
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol, Self
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.camera import CameraInfo, CameraSettings, Frame, Roi, bit_depth
+from drivers.camera import CameraContext, CameraInfo, CameraSettings, Frame, Roi, bit_depth
 from drivers.camera_errors import (
     CameraError,
     CameraLost,
@@ -128,7 +127,7 @@ StateSource = Callable[[], SceneState]
 """Returns the scene state now (called once per grab)."""
 
 
-class SimulatedCamera:
+class SimulatedCamera(CameraContext):
     """A software-triggered camera whose frames come from a :class:`Scene`.
 
     Args:
@@ -213,18 +212,6 @@ class SimulatedCamera:
         with self._lock:
             self._open = False
             self._lost = False
-
-    def __enter__(self) -> Self:
-        self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: types.TracebackType | None,
-    ) -> None:
-        self.close()
 
     # ------------------------------------------------------------------ Camera interface
 
