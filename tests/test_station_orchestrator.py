@@ -47,7 +47,9 @@ def station(tmp_path: Path, pytestconfig: pytest.Config) -> Iterator[Orchestrato
 
 
 def on_step(station: Orchestrator, index: int, action: object) -> None:
-    """Call ``action(event)`` (in the writer thread) when step ``index`` is recorded."""
+    """Call ``action(event)`` (in the writer thread) when step ``index`` is recorded.
+
+    Register it before submitting the job, so no event can slip past it."""
     fired = threading.Event()
 
     def listener(event: JobEvent) -> None:
@@ -110,8 +112,8 @@ def test_full_sweep_ends_in_a_calibration_matching_the_simulator(
 def test_pause_at_a_step_boundary_then_resume_to_a_complete_archive(
     station: Orchestrator,
 ) -> None:
+    on_step(station, 1, lambda e: station.pause(e.job_id, "operator checks the board"))
     job = station.submit(SHORT)
-    on_step(station, 1, lambda e: station.pause(job.id, "operator checks the board"))
     paused = station.wait_for(job.id, {JobState.PAUSED, *END}, timeout_s=60)
     assert paused.state is JobState.PAUSED
     kept = assert_kept_frames(station, job.id)
@@ -138,15 +140,15 @@ def test_pause_at_a_step_boundary_then_resume_to_a_complete_archive(
 def test_pause_before_the_white_image_then_resume(station: Orchestrator) -> None:
     """A pause that lands before the white image: after resuming, the XY stage goes to the
     white position again and the flat field is a real white image."""
-    job = station.submit(SHORT)
     fired = threading.Event()
 
     def listener(event: JobEvent) -> None:
         if event.type == "phase" and event.data["phase"] == "preparing" and not fired.is_set():
             fired.set()
-            station.pause(job.id)
+            station.pause(event.job_id)
 
-    station.add_listener(listener)
+    station.add_listener(listener)  # before submitting: the worker may start at once
+    job = station.submit(SHORT)
     paused = station.wait_for(job.id, {JobState.PAUSED, *END}, timeout_s=60)
     assert paused.state is JobState.PAUSED and paused.frames_done == 0
     station.resume(job.id)
@@ -158,11 +160,11 @@ def test_pause_before_the_white_image_then_resume(station: Orchestrator) -> None
 
 
 def test_cancel_mid_sweep_keeps_frames_and_the_queue_moves_on(station: Orchestrator) -> None:
+    on_step(station, 1, lambda e: station.cancel(e.job_id, "wrong board"))
     first = station.submit(SHORT)
     second = station.submit(SHORT)
     third = station.submit(SHORT)
     assert station.cancel(third.id).state is JobState.CANCELLED  # queued: at once
-    on_step(station, 1, lambda e: station.cancel(first.id, "wrong board"))
     stopped = station.wait_for(first.id, END, timeout_s=60)
     assert stopped.state is JobState.CANCELLED
     kept = assert_kept_frames(station, first.id)
