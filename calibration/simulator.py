@@ -106,7 +106,7 @@ class SimCamera:
         lens_px = self.optics.lens_pitch_px
         if self.sensor.width < lens_px or self.sensor.height < lens_px:
             raise ValueError(
-                f"impossible camera: the sensor ({self.sensor.width}x{self.sensor.height} px) is "
+                f"the sensor ({self.sensor.width}x{self.sensor.height} px) is "
                 f"smaller than one lens ({lens_px:.1f} px)"
             )
         if self.aperture_samples < 1:
