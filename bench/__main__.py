@@ -1,7 +1,9 @@
 """Run the benchmarks and print one table: ``python -m bench [names...]``.
 
-Names: simulator, accuracy, mla, render, serial, camera, station (default: all
-that exist). Each module ``bench.bench_<name>`` exposes ``run() -> list[dict]``
+Names: simulator, mla, accuracy, speed, render, serial, camera, station, web
+(the default: all of them) and crosscheck (the core on an independent
+renderer's sweeps; not in the default set, it renders for an hour the first
+time). Each module ``bench.bench_<name>`` exposes ``run() -> list[dict]``
 with rows ``name, value, unit, target, ok``.
 """
 

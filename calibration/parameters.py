@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from .focus import blur_shape
+from .focus import width_squared_px2
 from .optics import focused_virtual_distance, image_distance, object_distance
 
 
@@ -127,7 +127,8 @@ def global_fit(
 ) -> GlobalFit:
     """Weighted fit of ``1/Q = (L - v)/b`` (and, with widths, the blur model) over all frames.
 
-    Parameters ``(b, L)`` or ``(b, L, A, B)``; the focus plane is where
+    Parameters ``(b, L)`` or ``(b, L, A, B, C)`` (the blur model of
+    :func:`calibration.focus.width_squared_px2`); the focus plane is where
     ``L - v = a_f(b)``. ``width_scale`` is the per-frame scatter of ``w²``
     (px²) used to weight the blur terms (estimated from the data when None).
     """
@@ -161,17 +162,18 @@ def global_fit(
         if not use_blur:
             return r_q
         assert widths is not None
-        A, B = p[2], p[3]
+        A, B, C = p[2], p[3], p[4]
         a_f = focused_virtual_distance(f, b)
-        v0 = L - a_f
-        model = A + B * blur_shape(v[good_w], v0, a_f) ** 2
+        model = width_squared_px2(v[good_w], L - a_f, a_f, A, B, C)
         return np.concatenate([r_q, (model - widths[good_w] ** 2) / w_scale])
 
     w_scale = 1.0
     if use_blur:
         assert widths is not None
         w2 = widths[good_w] ** 2
-        p0 = np.array([b0, L0, float(w2.min()), float(max(w2.max() - w2.min(), 1e-6)) * 40.0])
+        p0 = np.array(
+            [b0, L0, float(w2.min()), float(max(w2.max() - w2.min(), 1e-6)) * 40.0, 0.0]
+        )
         if width_scale is None:
             # scatter of w² about a smooth curve: from differences of neighbouring frames
             order = np.argsort(u[good_w])
@@ -180,7 +182,7 @@ def global_fit(
             w_scale = width_scale
     else:
         p0 = np.array([b0, L0])
-    lower = [f * 1.0001, 0.0] + ([0.0, 0.0] if use_blur else [])
+    lower = [f * 1.0001, 0.0] + ([0.0, 0.0, -np.inf] if use_blur else [])
     fit = least_squares(resid, p0, bounds=(lower, [np.inf] * len(p0)), x_scale="jac")
     r = fit.fun
     s2 = max(float(np.sum(r**2) / max(1, r.size - len(p0))), 1.0)
@@ -220,7 +222,7 @@ def global_fit(
     if use_blur:
         a_f = focused_virtual_distance(f, b)
         width_model = np.sqrt(
-            np.maximum(fit.x[2] + fit.x[3] * blur_shape(v, L - a_f, a_f) ** 2, 0.0)
+            np.maximum(width_squared_px2(v, L - a_f, a_f, *fit.x[2:5]), 0.0)
         )
     q_res = y - (L - v[good_q]) / b
     return GlobalFit(est, float(np.sqrt(np.mean(q_res**2))), use_blur, inv_q_model, width_model)

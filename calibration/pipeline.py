@@ -367,6 +367,7 @@ def combine(
                 "blur_model": {
                     "A_px2": blur.A_px2,
                     "B_px2": blur.B_px2,
+                    "C_px2": blur.C_px2,
                     "v0_mm": blur.v0_mm,
                     "residual_rms_px2": blur.residual_rms_px2,
                 },
