@@ -171,9 +171,7 @@ def global_fit(
     if use_blur:
         assert widths is not None
         w2 = widths[good_w] ** 2
-        p0 = np.array(
-            [b0, L0, float(w2.min()), float(max(w2.max() - w2.min(), 1e-6)) * 40.0, 0.0]
-        )
+        p0 = np.array([b0, L0, float(w2.min()), float(max(w2.max() - w2.min(), 1e-6)) * 40.0, 0.0])
         if width_scale is None:
             # scatter of w² about a smooth curve: from differences of neighbouring frames
             order = np.argsort(u[good_w])
@@ -221,8 +219,6 @@ def global_fit(
     width_model = np.full(u.shape, np.nan)
     if use_blur:
         a_f = focused_virtual_distance(f, b)
-        width_model = np.sqrt(
-            np.maximum(width_squared_px2(v, L - a_f, a_f, *fit.x[2:5]), 0.0)
-        )
+        width_model = np.sqrt(np.maximum(width_squared_px2(v, L - a_f, a_f, *fit.x[2:5]), 0.0))
     q_res = y - (L - v[good_q]) / b
     return GlobalFit(est, float(np.sqrt(np.mean(q_res**2))), use_blur, inv_q_model, width_model)

@@ -34,11 +34,11 @@ from .mla_grid import MlaGrid, fit_mla_grid
 from .optics import focused_virtual_distance
 from .parameters import Estimate, global_fit, paper_estimate, q_at
 
-FOCUS_SYSTEMATIC_MM = 0.2
+FOCUS_SYSTEMATIC_MM = 0.15
 """Systematic uncertainty of the blur-model focus plane (mm), added in quadrature to
-its statistical one: the model's focus plane was 0.16-0.21 mm off the truth on the
-three simulated presets (100-frame sweeps), while its statistical uncertainty was
-0.05-0.1 mm."""
+its statistical one (0.05-0.1 mm on 100-frame sweeps). Measured focus-plane errors:
+0.02-0.08 mm on the three presets of the project's simulator, 0.08-0.12 mm on the
+three sweeps of the independent renderer (``bench/bench_crosscheck.py``)."""
 
 
 class CalibrationError(ValueError):

@@ -120,27 +120,48 @@ def plot_focus_curve(
     Lr_px: ArrayLike | None = None,
     fit_curve: FitCurve | None = None,
     focus_mm: float | None = None,
+    paper_focus_mm: float | None = None,
+    edge_width_px: ArrayLike | None = None,
+    width_model: FitCurve | None = None,
     title: str = "Focus-plane confirmation: corner size La(u)",
-    size_px: tuple[int, int] = DEFAULT_SIZE_PX,
+    size_px: tuple[int, int] | None = None,
 ) -> bytes:
-    """La(u) (ESIF Eq. 8) with the fitted model and the focus plane; Ls, Lr below.
+    """La(u) (ESIF Eq. 8) with the focus plane; Ls, Lr below; edge widths and blur model last.
 
-    Top panel: ``La`` (mm) against ``u`` (mm), the model ``fit_curve`` as a line
-    and the focus plane ``focus_mm`` as a dashed vertical line. Bottom panel:
-    the standard and reference corner sizes ``Ls``, ``Lr`` (px). Writes ``out``
-    when it is a path; returns the PNG bytes.
+    Top panel: ``La`` (mm) against ``u`` (mm), the model ``fit_curve`` as a line,
+    the focus plane ``focus_mm`` as a dashed vertical line and the paper's
+    ``argmin La`` (``paper_focus_mm``) as a dotted one. Middle panel: the
+    standard and reference corner sizes ``Ls``, ``Lr`` (px). With
+    ``edge_width_px`` a third panel shows the edge-spread width per frame (px)
+    and the whole-sweep blur model ``width_model`` that places the focus plane.
+    Default size 900×600 px (900×850 with the third panel). Writes ``out`` when
+    it is a path; returns the PNG bytes.
     """
     u = _values(object_distance_mm)
     la = _values(La_mm)
     ls = _values(Ls_px, len(u)) if Ls_px is not None else np.full(len(u), np.nan)
     lr = _values(Lr_px, len(u)) if Lr_px is not None else np.full(len(u), np.nan)
+    widths = _values(edge_width_px, len(u)) if edge_width_px is not None else None
     _same_length(("u", "La", "Ls", "Lr"), (u, la, ls, lr))
-    fig, (ax, ax2) = _figure(size_px, 2)
+    if widths is not None:
+        _same_length(("u", "edge width"), (u, widths))
+    if size_px is None:
+        size_px = DEFAULT_SIZE_PX if widths is None else (DEFAULT_SIZE_PX[0], 850)
+    fig, axes = _figure(size_px, 2 if widths is None else 3)
+    ax, ax2 = axes[0], axes[1]
     _points(ax, u, la, "La (measured)", marker="o", ms=4, color="tab:blue")
     curve = _curve(fit_curve, u)
     if curve is not None:
         ax.plot(curve[0], curve[1], color="tab:orange", lw=1.5, label="model")
     _mark_focus(ax, focus_mm)
+    if paper_focus_mm is not None and np.isfinite(paper_focus_mm):
+        ax.axvline(
+            paper_focus_mm,
+            color="tab:gray",
+            ls=":",
+            lw=1.2,
+            label=f"paper's argmin La = {paper_focus_mm:.2f} mm",
+        )
     if not np.any(np.isfinite(u) & np.isfinite(la)):
         _no_data(ax)
     ax.set_ylabel("La (mm)")
@@ -152,10 +173,23 @@ def plot_focus_curve(
     _mark_focus(ax2, focus_mm)
     if n_ls == len(u) and n_lr == len(u):
         _no_data(ax2)
-    ax2.set_xlabel("object distance u (mm)")
     ax2.set_ylabel("corner size (px)")
     _legend(ax2)
     ax2.grid(True, alpha=0.3)
+    last = ax2
+    if widths is not None:
+        ax3 = last = axes[2]
+        missing = _points(ax3, u, widths, "edge width", marker="o", ms=3, color="tab:cyan")
+        model = _curve(width_model, u)
+        if model is not None:
+            ax3.plot(model[0], model[1], color="tab:orange", lw=1.5, label="blur model")
+        _mark_focus(ax3, focus_mm)
+        if missing == len(u):
+            _no_data(ax3)
+        ax3.set_ylabel("edge width σ (px)")
+        _legend(ax3)
+        ax3.grid(True, alpha=0.3)
+    last.set_xlabel("object distance u (mm)")
     return _finish(fig, out)
 
 

@@ -15,15 +15,30 @@ def _column(frames: list[dict[str, Any]], key: str) -> np.ndarray:
 
 
 def focus_plot(result: dict[str, Any], out: str | Path | None = None) -> bytes:
-    """La(u) (Eq. 8) with Ls, Lr and the focus plane found by the blur model; PNG bytes."""
+    """La(u) (Eq. 8) with Ls, Lr, the edge widths with the blur model, and the focus
+    plane found by the blur model beside the paper's argmin La; PNG bytes."""
     frames = result.get("frames", [])
+    focus = result.get("focus") or {}
+    curves = result.get("curves") or {}
+    width_model = None
+    if curves.get("edge_width_model_px"):
+        width_model = (
+            np.array(curves["object_distance_mm"], dtype=float),
+            np.array(
+                [np.nan if v is None else v for v in curves["edge_width_model_px"]], dtype=float
+            ),
+        )
+    paper = focus.get("paper_argmin_La") or {}
     return plot_focus_curve(
         out,
         object_distance_mm=_column(frames, "object_distance_mm"),
         La_mm=_column(frames, "La_mm"),
         Ls_px=_column(frames, "Ls_px"),
         Lr_px=_column(frames, "Lr_px"),
-        focus_mm=(result.get("focus") or {}).get("object_distance_mm"),
+        focus_mm=focus.get("object_distance_mm"),
+        paper_focus_mm=paper.get("object_distance_mm"),
+        edge_width_px=_column(frames, "edge_width_px"),
+        width_model=width_model,
     )
 
 

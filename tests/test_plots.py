@@ -16,6 +16,7 @@ from calibration.plots import (
     render_png,
     stretch_to_uint8,
 )
+from calibration.report import focus_plot
 
 F, L, B = 35.0, 54.6226, 3.0
 
@@ -138,3 +139,26 @@ def test_render_png_stretches_between_percentiles(tmp_path: Path) -> None:
     assert back[0, 0] == 0 and back[1, 1] == 0  # NaN and inf
     assert not stretch_to_uint8(np.full((4, 4), 7.0)).any()  # constant image
     assert not stretch_to_uint8(np.full((4, 4), np.nan)).any()
+
+
+def test_focus_plot_of_a_result_shows_the_edge_widths_and_both_focus_estimates() -> None:
+    u = np.arange(250.0, 350.0)
+    la = 0.05 + 1e-5 * (u - 285.0) ** 2
+    width = np.sqrt(0.16 + 1e-4 * (u - 300.0) ** 2)
+    frames = [
+        {"object_distance_mm": x, "La_mm": y, "Ls_px": 1.0, "Lr_px": 1.4, "edge_width_px": w}
+        for x, y, w in zip(u, la, width, strict=True)
+    ]
+    result = {
+        "frames": frames,
+        "focus": {"object_distance_mm": 300.0, "paper_argmin_La": {"object_distance_mm": 285.0}},
+        "curves": {"object_distance_mm": list(u), "edge_width_model_px": list(width)},
+    }
+    data = focus_plot(result)
+    assert _png_size(data) == (DEFAULT_SIZE_PX[0], 850)  # a third panel for the edge widths
+    img = _decode(data)
+    # the lowest panel is not empty: the edge widths and the model are drawn in colour
+    bottom = img[600:820, 80:880].astype(int)
+    assert (np.abs(bottom[..., 0] - bottom[..., 2]) > 60).sum() > 200
+    without = dict(result, curves={})
+    assert focus_plot(without) != data

@@ -17,7 +17,7 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 from selenium.webdriver.remote.webdriver import WebDriver
 from selenium.webdriver.support.ui import WebDriverWait
-from test_web_support import KEY, ServerProcess, frame_cache, write_config
+from test_web_support import KEY, ServerProcess, frame_cache, wait_until, write_config
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path(shutil.which("chromedriver") or "/usr/bin/chromedriver")
@@ -163,3 +163,36 @@ def test_bad_form_input_is_refused_and_starts_nothing(
     browser.find_element(By.ID, "start-button").click()
     WebDriverWait(browser, 30).until(lambda d: "API key" in text(d, "#form-error"))
     assert server.client.get("/api/v1/jobs").json()["jobs"] == before
+
+
+def test_opening_the_page_during_a_run_follows_that_run(
+    browser: WebDriver, server: ServerProcess
+) -> None:
+    started = server.client.post(
+        "/api/v1/jobs",
+        json={"settle_s": 0.5, "calibrate": False, "note": "started over the API"},
+        headers={"X-API-Key": KEY},
+    )
+    assert started.status_code == 202, started.text
+    job_id = started.json()["id"]
+    try:
+        wait_until(
+            lambda: server.client.get(f"/api/v1/jobs/{job_id}").json()["state"] == "running",
+            60,
+            "the job to start",
+        )
+        open_page(browser, server)
+        # no click: the running job's panel opens by itself and its bar moves
+        WebDriverWait(browser, 30).until(lambda d: text(d, "#job-id") == str(job_id))
+        WebDriverWait(browser, 60, poll_frequency=0.05).until(
+            lambda d: int(float(d.find_element(By.ID, "progress").get_attribute("value") or 0)) >= 1
+        )
+        assert text(browser, "#job-state") in ("running", "paused")
+    finally:
+        server.client.post(f"/api/v1/jobs/{job_id}/cancel", headers={"X-API-Key": KEY})
+        wait_until(
+            lambda: server.client.get(f"/api/v1/jobs/{job_id}").json()["state"] == "cancelled",
+            60,
+            "the job to be cancelled",
+        )
+    WebDriverWait(browser, 30).until(lambda d: text(d, "#job-state") == "cancelled")

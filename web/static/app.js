@@ -82,7 +82,10 @@ async function init() {
     showDevices("down");
   }
   await loadSchema();
-  refreshJobs();
+  const jobs = await refreshJobs();
+  // an operator who opens the page during a run sees that run at once
+  const active = jobs.find((job) => job.state === "running" || job.state === "paused");
+  if (active && state.jobId === null) follow(active.id);
   setInterval(refreshDevices, 5000);
 }
 
@@ -525,6 +528,7 @@ async function showLinks(jobId, succeeded) {
 
 // ------------------------------------------------------------------ jobs list
 
+// Fills the job table; returns the jobs (oldest first), or [] when they cannot be read.
 async function refreshJobs() {
   try {
     const { body } = await api("/jobs?limit=20");
@@ -547,8 +551,10 @@ async function refreshJobs() {
       tr.appendChild(td);
       tbody.appendChild(tr);
     }
+    return body.jobs;
   } catch (err) {
     // reading the jobs may need a key: the form still works once one is entered
+    return [];
   }
 }
 
