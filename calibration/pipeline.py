@@ -12,6 +12,7 @@ check. :func:`calibrate_archive` does both for an archive on disk.
 
 from __future__ import annotations
 
+import importlib.metadata
 import math
 import multiprocessing
 import os
@@ -91,6 +92,31 @@ class SweepGeometry:
     def lens_pitch_px(self) -> float:
         """``D/δ``: lens-centre pitch on the sensor (px)."""
         return self.mla_pitch_mm / self.pixel_pitch_mm
+
+    def to_dict(self) -> dict[str, Any]:
+        """The priors a calibration used (JSON-ready): recorded with every result."""
+        return {
+            "camera": {
+                "width": self.width,
+                "height": self.height,
+                "pixel_pitch_mm": self.pixel_pitch_mm,
+                "principal_point_px": list(self.principal_point_px),
+            },
+            "optics": {
+                "main_focal_mm": self.main_focal_mm,
+                "mla_focal_mm": self.mla_focal_mm,
+                "mla_pitch_mm": self.mla_pitch_mm,
+                "lens_pitch_px": self.lens_pitch_px,
+            },
+            "board": {
+                "square_mm": self.board.square_mm,
+                "reference_gap_mm": self.board.reference_gap_mm,
+            },
+            "rail": {
+                "zero_object_distance_mm": self.zero_object_distance_mm,
+                "direction": self.direction,
+            },
+        }
 
     def object_distance_mm(self, rail_mm: float) -> float:
         return self.zero_object_distance_mm + self.direction * rail_mm
@@ -274,6 +300,8 @@ def combine(
     warnings: list[str] = []
     partial: dict[str, Any] = {
         "format": "lfcal-result/1",
+        "software": {"name": "lfcal-station", "version": _software_version()},
+        "inputs": g.to_dict(),
         "mla": grid.to_dict(),
         "frames": frames_out,
         "corners_found": {
@@ -399,6 +427,13 @@ def combine(
         }
     )
     return CalibrationResult(_json_clean(result))
+
+
+def _software_version() -> str:
+    try:
+        return importlib.metadata.version("lfcal-station")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def _local_slope(u: NDArray[np.float64], q: NDArray[np.float64], u0: float) -> float:

@@ -58,6 +58,7 @@ def disparity_plot(result: dict[str, Any], out: str | Path | None = None) -> byt
         Q_err=_column(frames, "Q_se"),
         fit_curve=fit,
         focus_mm=(result.get("focus") or {}).get("object_distance_mm"),
+        main_focal_mm=((result.get("inputs") or {}).get("optics") or {}).get("main_focal_mm"),
     )
 
 

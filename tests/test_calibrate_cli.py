@@ -105,6 +105,17 @@ def test_result_json_has_the_documented_keys(result: dict) -> None:
     assert result["_plots"] == ["disparity.png", "focus.png"]
 
 
+def test_result_records_the_priors_it_used(sweep: Path, result: dict) -> None:
+    manifest = json.loads((sweep / "sweep.json").read_text())
+    inputs = result["inputs"]
+    assert inputs["optics"] == {**manifest["optics"], "lens_pitch_px": pytest.approx(80.0)}
+    assert inputs["board"] == manifest["board"]
+    assert inputs["rail"] == manifest["rail"]
+    assert inputs["camera"]["principal_point_px"] == manifest["camera"]["principal_point_px"]
+    assert (inputs["camera"]["width"], inputs["camera"]["height"]) == (2400, 800)
+    assert result["software"]["name"] == "lfcal-station" and result["software"]["version"]
+
+
 def test_missing_and_corrupt_frames_are_skipped_and_reported(
     sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
