@@ -59,6 +59,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .png import encode_png_gray16
+
 FORMAT = "lfcal-sweep/1"
 """The value of the manifest's ``format`` key."""
 
@@ -698,8 +700,9 @@ def encode_image(
     """Encode counts as a 16-bit grey PNG after checking shape, type and range.
 
     ``image`` must be a 2-D integer array of shape ``expected_shape`` (height,
-    width) with values in ``0 .. 2**bit_depth − 1``; ``compression`` is the zlib
-    level 0..9 (1: fast, the frames are noisy anyway).
+    width) with values in ``0 .. 2**bit_depth − 1``; ``compression`` is the level of
+    :func:`calibration.png.encode_png_gray16` (0: stored, 1: fast Huffman-only
+    deflate, the default; the frames are noisy anyway).
     """
     arr = np.asarray(image)
     if arr.ndim != 2:
@@ -719,14 +722,7 @@ def encode_image(
             raise BitDepthError(
                 name, f"values {lo}..{hi} outside 0..{limit} = 2^{bit_depth}−1 (wrong bit depth?)"
             )
-    ok, buf = cv2.imencode(
-        ".png",
-        np.ascontiguousarray(arr, dtype=np.uint16),
-        [cv2.IMWRITE_PNG_COMPRESSION, compression],
-    )
-    if not ok:
-        raise CorruptImageError(name, "OpenCV could not encode the PNG")
-    return buf.tobytes()
+    return encode_png_gray16(arr, level=compression)
 
 
 def sha256_hex(data: bytes) -> str:

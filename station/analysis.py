@@ -10,7 +10,11 @@ PNG itself, so no frame crosses the process boundary -- and gets a
 :class:`calibration.pipeline.FrameSummary` back through a callback. At the end
 :meth:`AnalysisSession.wait` returns every summary; a worker that died (or a
 frame that failed) is analysed again in the calling process, so a result is
-never silently missing a frame.
+never silently missing a frame, and :meth:`AnalysisSession.combine` runs the final
+calibration in a worker too.
+
+Workers run in the lowest CPU priority class (:func:`lower_cpu_priority`): on a
+busy machine, the hardware thread and the HTTP server come first.
 """
 
 from __future__ import annotations
@@ -29,18 +33,55 @@ from pathlib import Path
 from typing import Any
 
 from calibration.archive import read_image
-from calibration.pipeline import FrameAnalyzer, FrameSummary
+from calibration.pipeline import (
+    CalibrationError,
+    FrameAnalyzer,
+    FrameSummary,
+    SweepGeometry,
+    combine,
+)
 
 # --------------------------------------------------------------------------- worker side
 
 _CACHE: dict[str, FrameAnalyzer] = {}
 
 
+ANALYSIS_NICENESS = 10
+"""Where the idle scheduling class is not available: the workers' nice value."""
+
+
+def lower_cpu_priority() -> str:
+    """Put the calling process in the lowest CPU priority this OS grants without
+    privileges: Linux ``SCHED_IDLE`` (it runs only when a core would otherwise idle),
+    else nice :data:`ANALYSIS_NICENESS`. Returns which one was applied ("idle",
+    "nice" or "none").
+
+    Analysis workers call it: when the cores are busy, the hardware thread and the
+    HTTP server come first, and the streaming analysis catches up between steps (it
+    is not on the acquisition's critical path).
+    """
+    if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            return "idle"
+        except OSError:
+            pass
+    if hasattr(os, "nice"):
+        try:
+            os.nice(ANALYSIS_NICENESS)
+            return "nice"
+        except OSError:
+            pass
+    return "none"
+
+
 def _init_worker() -> None:
-    """Runs first in every worker: exit when the station process ends, even by ``kill -9``.
+    """Runs first in every worker: lower its CPU priority (:func:`lower_cpu_priority`);
+    exit when the station process ends, even by ``kill -9``.
 
     (A pool worker otherwise waits for work forever once its parent is gone.)
     """
+    lower_cpu_priority()
     parent = multiprocessing.parent_process()
     if parent is None:
         return
@@ -76,6 +117,19 @@ def _analyze_file(
     return analyzer.analyze(index, rail_mm, image)
 
 
+def _combine_remote(
+    blob: bytes, summaries: list[FrameSummary], geometry: SweepGeometry
+) -> tuple[str, Any]:
+    """Worker: :func:`calibration.pipeline.combine` -> ``("ok", result dict)``, or
+    ``("error", (exception class, message, partial))`` for a :class:`CalibrationError`
+    (whose ``partial`` would not survive pickling the exception itself)."""
+    analyzer: FrameAnalyzer = pickle.loads(blob)
+    try:
+        return "ok", combine(summaries, geometry, analyzer.grid).to_dict()
+    except CalibrationError as exc:
+        return "error", (type(exc), str(exc), exc.partial)
+
+
 # --------------------------------------------------------------------------- summaries
 
 _FLOAT_FIELDS = (
@@ -103,8 +157,9 @@ def summary_from_dict(data: dict[str, Any]) -> FrameSummary:
 
 
 def default_workers() -> int:
-    """Analysis processes: one core is left to acquisition, at most 4."""
-    return max(1, min(4, (os.cpu_count() or 2) - 1))
+    """Analysis processes: one per core, at most 4. They run at a lower priority
+    (:func:`lower_cpu_priority`), so acquisition and the HTTP server still come first."""
+    return max(1, min(4, os.cpu_count() or 2))
 
 
 class AnalysisPool:
@@ -288,6 +343,25 @@ class AnalysisSession:
                 object_distance_mm=geometry.object_distance_mm(rail_mm),
                 error=f"analysis failed: {exc}",
             )
+
+    def combine(self, summaries: list[FrameSummary], geometry: SweepGeometry) -> dict[str, Any]:
+        """The calibration result (``CalibrationResult.to_dict()``) of ``summaries``.
+
+        Runs :func:`calibration.pipeline.combine` in a worker process: its least-squares
+        fits are seconds of Python-level work that would otherwise hold this process's
+        GIL while the HTTP server answers pollers. Falls back to this process if the pool
+        is unavailable. Raises :class:`CalibrationError` as ``combine`` does.
+        """
+        try:
+            future = self._pool.executor().submit(_combine_remote, self._blob, summaries, geometry)
+            status, payload = future.result()
+        except (BrokenProcessPool, RuntimeError):
+            self._pool.reset()
+            return combine(summaries, geometry, self._analyzer.grid).to_dict()
+        if status == "ok":
+            return dict(payload)
+        cls, message, partial = payload
+        raise cls(message, partial)
 
     def cancel(self) -> None:
         """Cancel the frames not started yet (the job stops without a result)."""

@@ -263,7 +263,7 @@ def _report(config: Any, job_id: int, out: TextIO, err: TextIO, interrupted: boo
     from station.store import JobState, JobStore
 
     with JobStore(config.storage.database) as store:
-        job = store.get_job(job_id)
+        job = store.get_job(job_id, with_result=True)
         frames = store.step_count(job_id)
     out.write(
         f"job {job.id}: {job.state.value}, {frames} of {job.frames_total} frames in "
@@ -336,7 +336,7 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
     with JobStore(db) as store:
         if args.job is not None:
             try:
-                job = store.get_job(args.job)
+                job = store.get_job(args.job, with_result=True)
             except JobNotFound as exc:
                 err.write(f"lfcal jobs: {exc}\n")
                 return EXIT_BAD_INPUT
@@ -353,7 +353,7 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
                     "updated_at": job.updated_at,
                     "archive_dir": str(job.archive_dir),
                     "last_error": job.last_error,
-                    "has_result": job.result is not None,
+                    "has_result": job.has_result,
                     "transitions": [
                         {
                             "from": t.from_state.value if t.from_state else None,

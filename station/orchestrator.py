@@ -164,7 +164,7 @@ class Orchestrator:
         devices_factory: opens the devices (default:
             ``station.devices.open_devices(config, emulator_speedup=...)``).
         store: a job store (default: ``config.storage.database``).
-        analysis_workers: analysis processes (None: cores - 1, at most 4; 0: no
+        analysis_workers: analysis processes (None: one per core, at most 4; 0: no
             analysis pool -- jobs can only acquire, ``calibrate`` is ignored).
         emulator_speedup: emulated stages move this many times faster (simulation).
         run_queued: run jobs found queued in the database at start-up (the CLI
@@ -436,8 +436,11 @@ class Orchestrator:
     def status(self, job_id: int) -> JobStatus:
         """The job's state and progress (:class:`station.store.JobNotFound` if unknown)."""
         job = self.store.get_job(job_id)
-        with self._lock:
-            active = self._active if self._active and self._active.job_id == job_id else None
+        # one atomic read of the reference, no lock: status is polled from the HTTP
+        # server's event loop and must not wait while the worker stores a result
+        active = self._active
+        if active is not None and active.job_id != job_id:
+            active = None
         if active is None or job.state not in ACTIVE_STATES:
             return self._status_of(job, self.store.step_count(job_id))
         with self._progress_lock:
@@ -466,7 +469,7 @@ class Orchestrator:
             frames_done=frames_done,
             frames_total=job.frames_total,
             last_error=job.last_error,
-            has_result=job.result is not None,
+            has_result=job.has_result,
             **live,
         )
 
@@ -476,8 +479,8 @@ class Orchestrator:
         return [self.status(job.id) for job in records]
 
     def record(self, job_id: int) -> JobRecord:
-        """The job's stored row."""
-        return self.store.get_job(job_id)
+        """The job's stored row, with its result (or a failed calibration's partial one)."""
+        return self.store.get_job(job_id, with_result=True)
 
     def transitions(self, job_id: int) -> list[Transition]:
         """Every state change of the job with its time and reason."""
@@ -496,7 +499,7 @@ class Orchestrator:
         without a result (its ``last_error`` says why; a failed calibration's
         partial result is in :meth:`record`).
         """
-        job = self.store.get_job(job_id)
+        job = self.store.get_job(job_id, with_result=True)
         if job.state is JobState.SUCCEEDED and job.result is not None:
             return job.result
         if job.state is JobState.SUCCEEDED:

@@ -18,7 +18,7 @@
    analysis while the rail already moves on. Pause, cancel and shut-down
    requests are honoured here, between steps;
 5. **calibrate** -- wait for the writer and the analysis, combine the frame
-   summaries into the calibration result.
+   summaries into the calibration result (in an analysis worker process).
 
 Device errors go through :mod:`station.faults`: bounded retries where safe,
 otherwise :class:`JobFailed` with the device's own message plus where in the
@@ -49,7 +49,6 @@ from calibration.pipeline import (
     CalibrationError,
     FrameAnalyzer,
     SweepGeometry,
-    combine,
 )
 from drivers.camera import CameraSettings, Roi, bit_depth
 from drivers.errors import ConnectionLost, DeviceError, PortUnavailable
@@ -740,11 +739,9 @@ class SweepRun:
         summaries = self.session.wait(timeout_s=600.0)
         assert self.geometry is not None
         try:
-            result = combine(
-                [summaries[i] for i in sorted(summaries) if i in recorded],
-                self.geometry,
-                self.session.analyzer.grid,
-            ).to_dict()
+            result = self.session.combine(
+                [summaries[i] for i in sorted(summaries) if i in recorded], self.geometry
+            )
         except CalibrationError as exc:
             partial = exc.partial
             if partial is not None:

@@ -154,7 +154,9 @@ class JobRecord:
         request: the validated sweep request (JSON object).
         created_at, updated_at: Unix time (s).
         result: the calibration result (JSON object), or the partial result of a
-            failed calibration, or None.
+            failed calibration, or None; only loaded on request
+            (``get_job(..., with_result=True)``): it can be megabytes of JSON.
+        has_result: a result is stored (whether or not it was loaded).
         last_error: why the job last failed / was interrupted (None if it did not).
         archive_dir: directory of the job's ``lfcal-sweep/1`` archive.
         frames_total: number of rail positions of the sweep.
@@ -171,6 +173,7 @@ class JobRecord:
     archive_dir: Path
     frames_total: int
     idempotency_key: str | None = None
+    has_result: bool = False
 
 
 @dataclass(frozen=True)
@@ -380,9 +383,14 @@ class JobStore:
             row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _job(row), True
 
-    def get_job(self, job_id: int) -> JobRecord:
-        """The job; :class:`JobNotFound` if there is none."""
-        row = self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+    def get_job(self, job_id: int, *, with_result: bool = False) -> JobRecord:
+        """The job; :class:`JobNotFound` if there is none.
+
+        The result is read and parsed only ``with_result`` (``has_result`` tells
+        whether there is one): status polling must not parse megabytes of JSON.
+        """
+        columns = _JOB_COLUMNS_WITH_RESULT if with_result else _JOB_COLUMNS
+        row = self._conn().execute(f"SELECT {columns} FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             raise JobNotFound(job_id)
         return _job(row)
@@ -390,8 +398,9 @@ class JobStore:
     def list_jobs(
         self, *, states: set[JobState] | frozenset[JobState] | None = None, limit: int | None = None
     ) -> list[JobRecord]:
-        """Jobs in id order (oldest first), optionally only those in ``states``."""
-        sql = "SELECT * FROM jobs"
+        """Jobs in id order (oldest first), optionally only those in ``states``
+        (without their results, see :meth:`get_job`)."""
+        sql = f"SELECT {_JOB_COLUMNS} FROM jobs"
         args: list[Any] = []
         if states:
             sql += f" WHERE state IN ({', '.join('?' * len(states))})"
@@ -419,9 +428,11 @@ class JobStore:
         ``expect`` narrows the allowed *from* states further (e.g. pause only
         from running). ``last_error`` / ``result`` are stored in the same
         transaction. Raises :class:`JobNotFound` / :class:`InvalidTransition`
-        (nothing changes then).
+        (nothing changes then). Returns the job without its result (see
+        :meth:`get_job`).
         """
         now = time.time()
+        result_json = None if result is None else _dumps(result)  # before the write lock
         with self._write() as db:
             row = db.execute("SELECT state FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
@@ -437,9 +448,9 @@ class JobStore:
                 args.append(last_error)
             elif clear_error:
                 sets.append("last_error = NULL")
-            if result is not None:
+            if result_json is not None:
                 sets.append("result = ?")
-                args.append(_dumps(result))
+                args.append(result_json)
             args.append(job_id)
             db.execute(f"UPDATE jobs SET {', '.join(sets)} WHERE id = ?", args)
             db.execute(
@@ -447,7 +458,7 @@ class JobStore:
                 "VALUES (?, ?, ?, ?, ?)",
                 (job_id, current.value, to_state.value, now, reason),
             )
-            new = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            new = db.execute(f"SELECT {_JOB_COLUMNS} FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _job(new)
 
     def set_error(self, job_id: int, message: str | None) -> None:
@@ -565,18 +576,27 @@ class JobStore:
         return int(row["n"])
 
 
+_JOB_COLUMNS = (
+    "id, state, request, created_at, updated_at, last_error, archive_dir, frames_total, "
+    "idempotency_key, result IS NOT NULL AS has_result"
+)
+_JOB_COLUMNS_WITH_RESULT = _JOB_COLUMNS + ", result"
+
+
 def _job(row: sqlite3.Row) -> JobRecord:
+    keys = row.keys()
     return JobRecord(
         id=int(row["id"]),
         state=JobState(row["state"]),
         request=_loads(row["request"]),
         created_at=float(row["created_at"]),
         updated_at=float(row["updated_at"]),
-        result=_loads(row["result"]),
+        result=_loads(row["result"]) if "result" in keys else None,
         last_error=row["last_error"],
         archive_dir=Path(row["archive_dir"]),
         frames_total=int(row["frames_total"]),
         idempotency_key=row["idempotency_key"],
+        has_result=bool(row["has_result"]) if "has_result" in keys else row["result"] is not None,
     )
 
 

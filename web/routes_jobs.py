@@ -1,7 +1,11 @@
 """Job routes: submit, list, status, pause/resume/cancel, result.
 
 Handlers are plain functions (run in the server's thread pool): the station's
-methods are thread-safe and return quickly.
+methods are thread-safe and return quickly. ``GET /jobs/{id}``, the route that
+operators and scripts poll, is a coroutine run on the event loop itself: the
+status is a memory read plus one indexed SQLite read (p99 about 1 ms during a
+sweep), and skipping the thread-pool hop keeps its p99 latency under 50
+concurrent pollers low (``bench/bench_web.py``).
 """
 
 # No ``from __future__ import annotations``: FastAPI needs the per-station body
@@ -117,7 +121,7 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         responses=error_responses(401, 403, 404, 422),
         summary="A job's state and progress",
     )
-    def get_job(request: Request, job_id: JobId) -> Response:
+    async def get_job(request: Request, job_id: JobId) -> Response:
         """State, frames done/total, rail position, ETA, last error."""
         return status_response(station_of(request), job_id)
 

@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--analysis-workers",
         type=int,
         default=None,
-        help="frame-analysis processes (default: cores - 1, at most 4)",
+        help="frame-analysis processes (default: one per core, at most 4)",
     )
     p.add_argument(
         "--log-level",

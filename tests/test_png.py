@@ -1,0 +1,87 @@
+"""The 16-bit grey PNG encoder against the PNG specification and two decoders."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+from numpy.testing import assert_array_equal
+
+from calibration.png import PNG_SIGNATURE, encode_png_gray16
+
+
+def chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    """(type, payload) of every chunk; asserts the signature and every CRC."""
+    assert data[:8] == PNG_SIGNATURE
+    out, pos = [], 8
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind, payload = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])
+        assert crc == zlib.crc32(kind + payload) & 0xFFFFFFFF, kind
+        out.append((kind, payload))
+        pos += 12 + length
+    return out
+
+
+def decode_by_the_spec(data: bytes) -> np.ndarray:
+    """A minimal decoder written from the PNG specification (filters None and Sub)."""
+    parts = chunks(data)
+    assert [k for k, _ in parts] == [b"IHDR", b"IDAT", b"IEND"]
+    width, height, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", parts[0][1])
+    assert (depth, colour, comp, filt, interlace) == (16, 0, 0, 0, 0)
+    raw = np.frombuffer(zlib.decompress(parts[1][1]), dtype=np.uint8).reshape(height, -1)
+    out = np.empty((height, 2 * width), dtype=np.uint8)
+    for y in range(height):
+        kind, line = raw[y, 0], raw[y, 1:].astype(np.int64)
+        if kind == 0:
+            out[y] = line
+        elif kind == 1:  # Sub: add the reconstructed byte one pixel (2 bytes) to the left
+            rec = line.copy()
+            for x in range(2, rec.size):
+                rec[x] = (rec[x] + rec[x - 2]) % 256
+            out[y] = rec
+        else:
+            raise AssertionError(f"unexpected filter {kind}")
+    return out.view(">u2").reshape(height, width).astype(np.uint16)
+
+
+@pytest.mark.parametrize("level", [0, 1, 6])
+def test_round_trip_is_exact_in_both_decoders(level: int) -> None:
+    rng = np.random.default_rng(level)
+    image = rng.integers(0, 4096, size=(37, 53), dtype=np.uint16)
+    image[0, :5] = [0, 65535, 1, 256, 65280]  # byte carries in the Sub filter
+    data = encode_png_gray16(image, level=level)
+    assert_array_equal(decode_by_the_spec(data), image)
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint16
+    assert_array_equal(back, image)
+
+
+def test_sizes_and_layouts() -> None:
+    for image in (
+        np.array([[7]], dtype=np.uint16),  # 1x1
+        np.arange(5, dtype=np.int64).reshape(5, 1) * 1000,  # one column, int64 input
+        (np.arange(24, dtype=np.uint16).reshape(4, 6) * 2000)[:, ::2],  # not contiguous
+        np.full((3, 4), 255, dtype=np.uint8),  # 8-bit counts stored as 16 bit
+    ):
+        data = encode_png_gray16(image, level=1)
+        assert_array_equal(decode_by_the_spec(data), image.astype(np.uint16))
+
+
+def test_level_one_compresses_noisy_12_bit_counts() -> None:
+    rng = np.random.default_rng(0)
+    image = rng.poisson(800.0, size=(200, 300)).astype(np.uint16)  # shot noise, 12-bit range
+    stored, fast = (len(encode_png_gray16(image, level=k)) for k in (0, 1))
+    assert stored > image.nbytes  # 2 bytes a pixel plus the framing
+    assert fast < 0.75 * stored
+
+
+def test_bad_input_is_refused() -> None:
+    with pytest.raises(ValueError, match="2-D"):
+        encode_png_gray16(np.zeros((2, 2, 3), dtype=np.uint16))
+    with pytest.raises(ValueError, match="level"):
+        encode_png_gray16(np.zeros((2, 2), dtype=np.uint16), level=10)
