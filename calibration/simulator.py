@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -226,30 +227,40 @@ def _irradiance_rows(
         nbx, nby = bx[need], by[need]
         ndx, ndy = dx[need], dy[need]
         ha2 = half_ap * half_ap
+
+        def ray_weights(sel: NDArray[np.bool_] | slice) -> Iterator[tuple[Any, Any, Any]]:
+            """(qx, qy, weight of the ray through aperture point q) for pixels ``sel``."""
+            sbx, sby, sdx, sdy = nbx[sel], nby[sel], ndx[sel], ndy[sel]
+            for qx, qy in zip(geo.qx, geo.qy, strict=True):
+                hx = sbx + geo.kappa * qx
+                hy = sby + geo.kappa * qy
+                ex, ey = sdx - qx, sdy - qy
+                yield qx, qy, (hx * hx + hy * hy <= ha2) / (1.0 + (ex * ex + ey * ey) / b2) ** 2
+
         if white:
-            edge_rays = np.zeros(nbx.shape, dtype=bool)
+            acc = np.zeros(nbx.shape, dtype=np.float64)
+            for _, _, w in ray_weights(slice(None)):
+                acc += w
         else:
             assert X0 is not None and Y0 is not None
+            # rim pixels away from board edges see one reflectance through every ray:
+            # only their aperture weights are summed
             edge_rays = near_edge[need]
-            nX, nY = X0[need][edge_rays], Y0[need][edge_rays]
-            flat_refl = np.empty(nbx.shape, dtype=np.float64)
             flat = ~edge_rays
-            flat_refl[flat] = cam.board.box_reflectance(
+            acc = np.zeros(nbx.shape, dtype=np.float64)
+            flat_w = np.zeros(int(flat.sum()), dtype=np.float64)
+            for _, _, w in ray_weights(flat):
+                flat_w += w
+            acc[flat] = flat_w * cam.board.box_reflectance(
                 X0[need][flat], Y0[need][flat], geo.footprint_half_mm
             )
-        acc = np.zeros(nbx.shape, dtype=np.float64)
-        for qx, qy in zip(geo.qx, geo.qy, strict=True):
-            hx = nbx + geo.kappa * qx
-            hy = nby + geo.kappa * qy
-            ex, ey = ndx - qx, ndy - qy
-            w = (hx * hx + hy * hy <= ha2) / (1.0 + (ex * ex + ey * ey) / b2) ** 2
-            if white:
-                acc += w
-            else:
-                acc[flat] += w[flat] * flat_refl[flat]
-                acc[edge_rays] += w[edge_rays] * cam.board.box_reflectance(
+            nX, nY = X0[need][edge_rays], Y0[need][edge_rays]
+            edge_acc = np.zeros(nX.shape, dtype=np.float64)
+            for qx, qy, w in ray_weights(edge_rays):
+                edge_acc += w * cam.board.box_reflectance(
                     nX + geo.lam * qx, nY + geo.lam * qy, geo.footprint_half_mm, geo.psf_board_mm
                 )
+            acc[edge_rays] = edge_acc
         value[need] = acc / geo.qx.size
     return value.astype(np.float32)
 
