@@ -13,8 +13,8 @@ frame that failed) is analysed again in the calling process, so a result is
 never silently missing a frame, and :meth:`AnalysisSession.combine` runs the final
 calibration in a worker too.
 
-Workers run in the lowest CPU priority class (:func:`lower_cpu_priority`): on a
-busy machine, the hardware thread and the HTTP server come first.
+Workers run at a lower CPU priority (:func:`lower_cpu_priority`): on a busy
+machine, the hardware thread and the HTTP server come first.
 """
 
 from __future__ import annotations
@@ -47,32 +47,25 @@ _CACHE: dict[str, FrameAnalyzer] = {}
 
 
 ANALYSIS_NICENESS = 10
-"""Where the idle scheduling class is not available: the workers' nice value."""
+"""How much nicer than the station process the analysis workers run (Unix nice)."""
 
 
-def lower_cpu_priority() -> str:
-    """Put the calling process in the lowest CPU priority this OS grants without
-    privileges: Linux ``SCHED_IDLE`` (it runs only when a core would otherwise idle),
-    else nice :data:`ANALYSIS_NICENESS`. Returns which one was applied ("idle",
-    "nice" or "none").
+def lower_cpu_priority() -> bool:
+    """Raise the calling process's nice value by :data:`ANALYSIS_NICENESS`; True if done.
 
     Analysis workers call it: when the cores are busy, the hardware thread and the
-    HTTP server come first, and the streaming analysis catches up between steps (it
-    is not on the acquisition's critical path).
+    HTTP server come first (about 90 % of a contended core), and the streaming
+    analysis catches up between steps (it is not on the acquisition's critical
+    path). Nice rather than Linux ``SCHED_IDLE``: the workers still progress when
+    another program keeps every core busy.
     """
-    if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE"):
-        try:
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-            return "idle"
-        except OSError:
-            pass
-    if hasattr(os, "nice"):
-        try:
-            os.nice(ANALYSIS_NICENESS)
-            return "nice"
-        except OSError:
-            pass
-    return "none"
+    if not hasattr(os, "nice"):
+        return False
+    try:
+        os.nice(ANALYSIS_NICENESS)
+    except OSError:  # not permitted here: run at the normal priority
+        return False
+    return True
 
 
 def _init_worker() -> None:

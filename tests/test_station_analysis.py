@@ -1,5 +1,5 @@
 """The analysis worker pool: frames analysed and the sweep calibrated in worker
-processes, at the lowest CPU priority, with the same numbers as in-process."""
+processes, at a lower CPU priority, with the same numbers as in-process."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from calibration.archive import SweepArchive
 from calibration.pipeline import CalibrationError, FrameAnalyzer, SweepGeometry, combine
-from station.analysis import AnalysisPool
+from station.analysis import ANALYSIS_NICENESS, AnalysisPool
 from station.cli import main
 
 FRAMES = 12
@@ -49,12 +49,11 @@ def analysed(sweep: Path, pool: AnalysisPool) -> tuple:
     return geometry, analyzer, session, [summaries[i] for i in sorted(summaries)]
 
 
-def test_workers_run_in_the_idle_scheduling_class(pool: AnalysisPool) -> None:
-    if not hasattr(os, "SCHED_IDLE"):
-        pytest.skip("no SCHED_IDLE on this OS")
-    policy = pool.executor().submit(os.sched_getscheduler, 0).result(timeout=60)
-    assert policy == os.SCHED_IDLE
-    assert os.sched_getscheduler(0) != os.SCHED_IDLE  # the station process itself is not
+def test_workers_run_at_a_lower_cpu_priority(pool: AnalysisPool) -> None:
+    if not hasattr(os, "nice"):
+        pytest.skip("no nice values on this OS")
+    worker_nice = pool.executor().submit(os.nice, 0).result(timeout=60)
+    assert worker_nice == min(19, os.nice(0) + ANALYSIS_NICENESS)
 
 
 def test_every_frame_is_analysed_in_the_workers(sweep: Path, analysed: tuple) -> None:
