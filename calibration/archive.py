@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .png import encode_png_gray16
+from .png import PNG_SIGNATURE, encode_png_gray16
 
 FORMAT = "lfcal-sweep/1"
 """The value of the manifest's ``format`` key."""
@@ -70,7 +70,6 @@ FRAMES_DIR = "frames"
 DEFAULT_RESERVE_BYTES = 16 * 1024 * 1024
 """Free space (bytes) that every write leaves on the disk on top of its own size."""
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _HEX64 = re.compile(r"^[0-9a-fA-F]{64}$")
 _PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
 
@@ -596,9 +595,9 @@ def manifest_from_header(header: SweepManifest | Mapping[str, Any]) -> SweepMani
 
 def _png_header_problem(data: bytes) -> tuple[str | None, tuple[int, int, int, int] | None]:
     """Walk the PNG chunk structure: (problem or None, IHDR (width, height, bits, colour type))."""
-    if not data.startswith(_PNG_SIGNATURE):
+    if not data.startswith(PNG_SIGNATURE):
         return "not a PNG file (bad signature)", None
-    pos, ihdr = len(_PNG_SIGNATURE), None
+    pos, ihdr = len(PNG_SIGNATURE), None
     while True:
         if pos + 8 > len(data):
             return "truncated PNG (no IEND chunk)", ihdr

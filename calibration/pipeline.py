@@ -12,7 +12,6 @@ check. :func:`calibrate_archive` does both for an archive on disk.
 
 from __future__ import annotations
 
-import importlib.metadata
 import math
 import multiprocessing
 import os
@@ -34,6 +33,7 @@ from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
 from .optics import focused_virtual_distance
 from .parameters import Estimate, global_fit, paper_estimate, q_at
+from .version import DISTRIBUTION, software_version
 
 FOCUS_SYSTEMATIC_MM = 0.15
 """Systematic uncertainty of the blur-model focus plane (mm), added in quadrature to
@@ -300,7 +300,7 @@ def combine(
     warnings: list[str] = []
     partial: dict[str, Any] = {
         "format": "lfcal-result/1",
-        "software": {"name": "lfcal-station", "version": _software_version()},
+        "software": {"name": DISTRIBUTION, "version": software_version()},
         "inputs": g.to_dict(),
         "mla": grid.to_dict(),
         "frames": frames_out,
@@ -427,13 +427,6 @@ def combine(
         }
     )
     return CalibrationResult(_json_clean(result))
-
-
-def _software_version() -> str:
-    try:
-        return importlib.metadata.version("lfcal-station")
-    except importlib.metadata.PackageNotFoundError:
-        return "unknown"
 
 
 def _local_slope(u: NDArray[np.float64], q: NDArray[np.float64], u0: float) -> float:

@@ -69,4 +69,4 @@ def encode_png_gray16(image: NDArray[Any], *, level: int = 1) -> bytes:
     return PNG_SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
 
 
-__all__ = ["encode_png_gray16"]
+__all__ = ["PNG_SIGNATURE", "encode_png_gray16"]

@@ -50,8 +50,8 @@ ANALYSIS_NICENESS = 10
 """How much nicer than the station process the analysis workers run (Unix nice)."""
 
 
-def lower_cpu_priority() -> bool:
-    """Raise the calling process's nice value by :data:`ANALYSIS_NICENESS`; True if done.
+def lower_cpu_priority() -> None:
+    """Raise the calling process's nice value by :data:`ANALYSIS_NICENESS` (where allowed).
 
     Analysis workers call it: when the cores are busy, the hardware thread and the
     HTTP server come first (about 90 % of a contended core), and the streaming
@@ -59,13 +59,11 @@ def lower_cpu_priority() -> bool:
     path). Nice rather than Linux ``SCHED_IDLE``: the workers still progress when
     another program keeps every core busy.
     """
-    if not hasattr(os, "nice"):
-        return False
-    try:
-        os.nice(ANALYSIS_NICENESS)
-    except OSError:  # not permitted here: run at the normal priority
-        return False
-    return True
+    if hasattr(os, "nice"):
+        try:
+            os.nice(ANALYSIS_NICENESS)
+        except OSError:  # not permitted here: run at the normal priority
+            pass
 
 
 def _init_worker() -> None:
@@ -101,24 +99,29 @@ def _analyze_file(
     bit_depth: int,
 ) -> FrameSummary:
     """Worker: analyse the frame file ``path`` taken at ``rail_mm`` (mm)."""
+    image = read_image(path, expected_shape=shape, bit_depth=bit_depth)
+    return _analyzer_for(key, blob).analyze(index, rail_mm, image)
+
+
+def _analyzer_for(key: str, blob: bytes) -> FrameAnalyzer:
+    """Worker: the job's analyzer, unpickled once per job and worker."""
     analyzer = _CACHE.get(key)
     if analyzer is None:
         _CACHE.clear()  # one job at a time: drop the previous job's analyzer
         analyzer = pickle.loads(blob)
         _CACHE[key] = analyzer
-    image = read_image(path, expected_shape=shape, bit_depth=bit_depth)
-    return analyzer.analyze(index, rail_mm, image)
+    return analyzer
 
 
 def _combine_remote(
-    blob: bytes, summaries: list[FrameSummary], geometry: SweepGeometry
+    key: str, blob: bytes, summaries: list[FrameSummary], geometry: SweepGeometry
 ) -> tuple[str, Any]:
     """Worker: :func:`calibration.pipeline.combine` -> ``("ok", result dict)``, or
     ``("error", (exception class, message, partial))`` for a :class:`CalibrationError`
     (whose ``partial`` would not survive pickling the exception itself)."""
-    analyzer: FrameAnalyzer = pickle.loads(blob)
+    grid = _analyzer_for(key, blob).grid
     try:
-        return "ok", combine(summaries, geometry, analyzer.grid).to_dict()
+        return "ok", combine(summaries, geometry, grid).to_dict()
     except CalibrationError as exc:
         return "error", (type(exc), str(exc), exc.partial)
 
@@ -346,9 +349,11 @@ class AnalysisSession:
         is unavailable. Raises :class:`CalibrationError` as ``combine`` does.
         """
         try:
-            future = self._pool.executor().submit(_combine_remote, self._blob, summaries, geometry)
+            future = self._pool.executor().submit(
+                _combine_remote, self._key, self._blob, summaries, geometry
+            )
             status, payload = future.result()
-        except (BrokenProcessPool, RuntimeError):
+        except (BrokenProcessPool, RuntimeError):  # pool broken or shut down, worker died
             self._pool.reset()
             return combine(summaries, geometry, self._analyzer.grid).to_dict()
         if status == "ok":

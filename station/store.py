@@ -360,7 +360,8 @@ class JobStore:
         with self._write() as db:
             if idempotency_key is not None:
                 row = db.execute(
-                    "SELECT * FROM jobs WHERE idempotency_key = ?", (idempotency_key,)
+                    f"SELECT {_JOB_COLUMNS} FROM jobs WHERE idempotency_key = ?",
+                    (idempotency_key,),
                 ).fetchone()
                 if row is not None:
                     if _loads(row["request"]) != json.loads(req_text):
@@ -380,7 +381,7 @@ class JobStore:
                 "VALUES (?, NULL, ?, ?, ?)",
                 (job_id, JobState.QUEUED.value, now, reason),
             )
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = db.execute(f"SELECT {_JOB_COLUMNS} FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return _job(row), True
 
     def get_job(self, job_id: int, *, with_result: bool = False) -> JobRecord:
@@ -584,19 +585,19 @@ _JOB_COLUMNS_WITH_RESULT = _JOB_COLUMNS + ", result"
 
 
 def _job(row: sqlite3.Row) -> JobRecord:
-    keys = row.keys()
+    """A record from a row of ``_JOB_COLUMNS`` (plus ``result`` if it was selected)."""
     return JobRecord(
         id=int(row["id"]),
         state=JobState(row["state"]),
         request=_loads(row["request"]),
         created_at=float(row["created_at"]),
         updated_at=float(row["updated_at"]),
-        result=_loads(row["result"]) if "result" in keys else None,
+        result=_loads(row["result"]) if "result" in row.keys() else None,
         last_error=row["last_error"],
         archive_dir=Path(row["archive_dir"]),
         frames_total=int(row["frames_total"]),
         idempotency_key=row["idempotency_key"],
-        has_result=bool(row["has_result"]) if "has_result" in keys else row["result"] is not None,
+        has_result=bool(row["has_result"]),
     )
 
 

@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request
 
+from calibration.version import software_version
 from station.orchestrator import Orchestrator
 from station.store import ACTIVE_STATES, JobState
 from web.errors import ApiError, error_responses
 from web.schemas import DevicesOut, Health
 from web.security import check_key
 from web.station_api import API
-
-
-def _version() -> str:
-    try:
-        return version("lfcal-station")
-    except PackageNotFoundError:
-        return "0+unknown"
 
 
 def device_problems(info: dict[str, Any]) -> list[str]:
@@ -95,7 +88,7 @@ def build_system_router(*, read_key: bool) -> APIRouter:
         active = station.store.list_jobs(states={JobState.QUEUED, *ACTIVE_STATES})
         return Health(
             status="ok",
-            version=_version(),
+            version=software_version(),
             devices=device_state(station.devices_info()),
             read_only_requires_key=request.app.state.config.server.read_only_requires_key,
             jobs_active=len(active),
