@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from calibration.png import PNG_SIGNATURE, encode_png_gray16
+from calibration.png import encode_png_gray16
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # PNG specification, section 5.2
 
 
 def chunks(data: bytes) -> list[tuple[bytes, bytes]]:

@@ -61,8 +61,8 @@ def test_every_frame_is_analysed_in_the_workers(sweep: Path, analysed: tuple) ->
     assert [s.index for s in summaries] == list(range(FRAMES))
     assert session.done_count() == FRAMES
     assert [s.error for s in summaries] == [""] * FRAMES
-    entry = SweepArchive.open(sweep).manifest.frames[5]
-    here = analyzer.analyze(5, entry.rail_mm, SweepArchive.open(sweep).frame(5))
+    archive = SweepArchive.open(sweep)
+    here = analyzer.analyze(5, archive.manifest.frames[5].rail_mm, archive.frame(5))
     assert summaries[5].to_dict(with_corners=True) == here.to_dict(with_corners=True)
 
 
