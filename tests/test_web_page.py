@@ -187,7 +187,9 @@ def test_opening_the_page_during_a_run_follows_that_run(
         WebDriverWait(browser, 60, poll_frequency=0.05).until(
             lambda d: int(float(d.find_element(By.ID, "progress").get_attribute("value") or 0)) >= 1
         )
-        assert text(browser, "#job-state") in ("running", "paused")
+        # the state span holds the state alone (SSE and polling agree); the phase sits beside it
+        assert text(browser, "#job-state") == "running"
+        WebDriverWait(browser, 30).until(lambda d: text(d, "#job-phase") == "(sweeping)")
     finally:
         server.client.post(f"/api/v1/jobs/{job_id}/cancel", headers={"X-API-Key": KEY})
         wait_until(
@@ -196,3 +198,4 @@ def test_opening_the_page_during_a_run_follows_that_run(
             "the job to be cancelled",
         )
     WebDriverWait(browser, 30).until(lambda d: text(d, "#job-state") == "cancelled")
+    assert text(browser, "#job-phase") == ""

@@ -226,6 +226,8 @@ function follow(jobId) {
   $("job").hidden = false;
   $("result").hidden = true;
   $("job-id").textContent = String(jobId);
+  $("job-state").textContent = "";
+  $("job-phase").textContent = "";
   $("job-error").textContent = "";
   $("progress").value = 0;
   drawPlot();
@@ -305,7 +307,7 @@ function onEvent(type, d) {
   } else if (type === "analysis") {
     addPoint(d);
   } else if (type === "phase") {
-    $("job-state").textContent = `running (${d.phase})`;
+    $("job-phase").textContent = d.phase ? `(${d.phase})` : "";
   } else if (type === "state") {
     $("job-state").textContent = d.state;
     if (d.last_error) $("job-error").textContent = d.last_error;
@@ -335,11 +337,14 @@ async function pollStatus() {
     const parts = [`${job.frames_done} of ${job.frames_total} frames`];
     if (job.rail_mm !== null) parts.push(`rail ${fmt(job.rail_mm, 3)} mm`);
     if (job.eta_s !== null) parts.push(`ETA ${Math.round(job.eta_s)} s`);
-    if (job.phase) parts.push(job.phase);
     $("progress-text").textContent = parts.join(", ");
-    const label = job.state + (job.pause_requested ? " (pause requested)" : "") +
-      (job.cancel_requested ? " (cancel requested)" : "");
-    $("job-state").textContent = label;
+    // the state span holds the job's state only; phase and pending requests go beside it
+    const notes = [];
+    if (job.phase && !FINAL.has(job.state)) notes.push(job.phase);
+    if (job.pause_requested) notes.push("pause requested");
+    if (job.cancel_requested) notes.push("cancel requested");
+    $("job-state").textContent = job.state;
+    $("job-phase").textContent = notes.length ? `(${notes.join(", ")})` : "";
     if (job.last_error) $("job-error").textContent = job.last_error;
     if (FINAL.has(job.state)) onFinal(job.state);
   } catch (err) {
@@ -365,6 +370,7 @@ async function onFinal(jobState) {
   if (state.pollTimer) clearInterval(state.pollTimer);
   state.pollTimer = null;
   $("job-state").textContent = jobState;
+  $("job-phase").textContent = "";
   try {
     const { body: job } = await api(`/jobs/${state.jobId}`);
     setProgress(job.frames_done, job.frames_total);
