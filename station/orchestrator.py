@@ -372,10 +372,10 @@ class Orchestrator:
                 idempotency_key=idempotency_key,
             )
             if created:
+                # published under the lock, so that no worker's "running" can overtake it
+                self._publish_state(job.id, JobState.QUEUED, None, "submitted")
                 self._queue.append(job.id)
                 self._changed.notify_all()
-        if created:
-            self._publish_state(job.id, JobState.QUEUED, None, "submitted")
         return self.status(job.id)
 
     def pause(self, job_id: int, reason: str = "paused by the operator") -> JobStatus:
@@ -404,11 +404,11 @@ class Orchestrator:
                 return self.status(job_id)
             if job.state in (JobState.INTERRUPTED, JobState.FAILED):
                 self.store.transition(job_id, JobState.QUEUED, f"{reason}: queued again")
+                self._publish_state(job_id, JobState.QUEUED, job.state, f"{reason}: queued again")
                 self._queue.append(job_id)
                 self._changed.notify_all()
             else:
                 raise InvalidTransition(job_id, job.state, JobState.RUNNING, "resume")
-        self._publish_state(job_id, JobState.QUEUED, job.state, f"{reason}: queued again")
         return self.status(job_id)
 
     def cancel(self, job_id: int, reason: str = "cancelled by the operator") -> JobStatus:
@@ -427,8 +427,8 @@ class Orchestrator:
             self.store.transition(job_id, JobState.CANCELLED, reason)
             if job_id in self._queue:
                 self._queue.remove(job_id)
+            self._publish_state(job_id, JobState.CANCELLED, job.state, reason)
             self._changed.notify_all()
-        self._publish_state(job_id, JobState.CANCELLED, job.state, reason)
         return self.status(job_id)
 
     # ------------------------------------------------------------------ queries
@@ -740,8 +740,9 @@ class Orchestrator:
         with self._lock:
             before = self.store.get_job(job_id).state
             job = self.store.transition(job_id, state, reason, **kwargs)
+            # state events leave in the order the store records the transitions
+            self._publish_state(job_id, state, before, reason)
             self._changed.notify_all()
-        self._publish_state(job_id, state, before, reason)
         return job
 
     def _run_transition(self, job_id: int, state: JobState, reason: str) -> None:
