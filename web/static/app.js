@@ -307,6 +307,7 @@ function onEvent(type, d) {
   } else if (type === "analysis") {
     addPoint(d);
   } else if (type === "phase") {
+    if (state.finalShown === state.jobId) return false;
     $("job-phase").textContent = d.phase ? `(${d.phase})` : "";
   } else if (type === "state") {
     $("job-state").textContent = d.state;
@@ -332,7 +333,8 @@ async function pollStatus() {
   if (jobId === null) return;
   try {
     const { body: job } = await api(`/jobs/${jobId}`);
-    if (jobId !== state.jobId) return;
+    // a reply that was in flight when the job ended must not overwrite the final state
+    if (jobId !== state.jobId || state.finalShown === jobId) return;
     setProgress(job.frames_done, job.frames_total);
     const parts = [`${job.frames_done} of ${job.frames_total} frames`];
     if (job.rail_mm !== null) parts.push(`rail ${fmt(job.rail_mm, 3)} mm`);
