@@ -373,7 +373,7 @@ class Orchestrator:
             )
             if created:
                 # published under the lock, so that no worker's "running" can overtake it
-                self._publish_state(job.id, JobState.QUEUED, None, "submitted")
+                self._publish_state(job, None, "submitted")
                 self._queue.append(job.id)
                 self._changed.notify_all()
         return self.status(job.id)
@@ -403,8 +403,8 @@ class Orchestrator:
                     active.progress.pause_requested = False
                 return self.status(job_id)
             if job.state in (JobState.INTERRUPTED, JobState.FAILED):
-                self.store.transition(job_id, JobState.QUEUED, f"{reason}: queued again")
-                self._publish_state(job_id, JobState.QUEUED, job.state, f"{reason}: queued again")
+                requeued = self.store.transition(job_id, JobState.QUEUED, f"{reason}: queued again")
+                self._publish_state(requeued, job.state, f"{reason}: queued again")
                 self._queue.append(job_id)
                 self._changed.notify_all()
             else:
@@ -424,10 +424,10 @@ class Orchestrator:
                 return self.status(job_id)
             if job.state not in (JobState.QUEUED, JobState.INTERRUPTED):
                 raise InvalidTransition(job_id, job.state, JobState.CANCELLED, "cancel")
-            self.store.transition(job_id, JobState.CANCELLED, reason)
+            cancelled = self.store.transition(job_id, JobState.CANCELLED, reason)
             if job_id in self._queue:
                 self._queue.remove(job_id)
-            self._publish_state(job_id, JobState.CANCELLED, job.state, reason)
+            self._publish_state(cancelled, job.state, reason)
             self._changed.notify_all()
         return self.status(job_id)
 
@@ -708,24 +708,19 @@ class Orchestrator:
 
     # ------------------------------------------------------------------ the worker
 
-    def _publish_state(
-        self, job_id: int, state: JobState, previous: JobState | None, reason: str
-    ) -> None:
-        last_error = None
-        try:
-            last_error = self.store.get_job(job_id).last_error
-        except Exception:  # noqa: BLE001
-            pass
+    def _publish_state(self, job: JobRecord, previous: JobState | None, reason: str) -> None:
+        """Announce the job's new state (``job`` as the store returned it from the
+        transition); callers hold ``self._lock``, so events keep the store's order."""
         self.hub.publish(
             JobEvent(
-                job_id,
+                job.id,
                 "state",
                 None,
                 {
-                    "state": state.value,
+                    "state": job.state.value,
                     "from": None if previous is None else previous.value,
                     "reason": reason,
-                    "last_error": last_error,
+                    "last_error": job.last_error,
                 },
             )
         )
@@ -741,7 +736,7 @@ class Orchestrator:
             before = self.store.get_job(job_id).state
             job = self.store.transition(job_id, state, reason, **kwargs)
             # state events leave in the order the store records the transitions
-            self._publish_state(job_id, state, before, reason)
+            self._publish_state(job, before, reason)
             self._changed.notify_all()
         return job
 
@@ -772,19 +767,7 @@ class Orchestrator:
                         LiveProgress(job_id, frames_total=job.frames_total, frames_done=steps),
                     )
                     self._changed.notify_all()
-                    self.hub.publish(
-                        JobEvent(
-                            job_id,
-                            "state",
-                            None,
-                            {
-                                "state": "running",
-                                "from": "queued",
-                                "reason": reason,
-                                "last_error": None,
-                            },
-                        )
-                    )
+                    self._publish_state(job, JobState.QUEUED, reason)
                     return job
                 self._changed.wait()
 

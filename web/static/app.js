@@ -227,7 +227,7 @@ function follow(jobId) {
   $("result").hidden = true;
   $("job-id").textContent = String(jobId);
   $("job-state").textContent = "";
-  $("job-phase").textContent = "";
+  showPhase([]);
   $("job-error").textContent = "";
   $("progress").value = 0;
   drawPlot();
@@ -307,8 +307,7 @@ function onEvent(type, d) {
   } else if (type === "analysis") {
     addPoint(d);
   } else if (type === "phase") {
-    if (state.finalShown === state.jobId) return false;
-    $("job-phase").textContent = d.phase ? `(${d.phase})` : "";
+    if (state.finalShown !== state.jobId) showPhase([d.phase]);
   } else if (type === "state") {
     $("job-state").textContent = d.state;
     if (d.last_error) $("job-error").textContent = d.last_error;
@@ -318,6 +317,12 @@ function onEvent(type, d) {
     }
   }
   return false;
+}
+
+// The state span holds the job's state only; its phase and pending requests go beside it.
+function showPhase(notes) {
+  const shown = notes.filter(Boolean);
+  $("job-phase").textContent = shown.length ? `(${shown.join(", ")})` : "";
 }
 
 function setProgress(done, total) {
@@ -340,13 +345,12 @@ async function pollStatus() {
     if (job.rail_mm !== null) parts.push(`rail ${fmt(job.rail_mm, 3)} mm`);
     if (job.eta_s !== null) parts.push(`ETA ${Math.round(job.eta_s)} s`);
     $("progress-text").textContent = parts.join(", ");
-    // the state span holds the job's state only; phase and pending requests go beside it
-    const notes = [];
-    if (job.phase && !FINAL.has(job.state)) notes.push(job.phase);
-    if (job.pause_requested) notes.push("pause requested");
-    if (job.cancel_requested) notes.push("cancel requested");
     $("job-state").textContent = job.state;
-    $("job-phase").textContent = notes.length ? `(${notes.join(", ")})` : "";
+    showPhase([
+      job.phase,
+      job.pause_requested && "pause requested",
+      job.cancel_requested && "cancel requested",
+    ]);
     if (job.last_error) $("job-error").textContent = job.last_error;
     if (FINAL.has(job.state)) onFinal(job.state);
   } catch (err) {
@@ -372,7 +376,7 @@ async function onFinal(jobState) {
   if (state.pollTimer) clearInterval(state.pollTimer);
   state.pollTimer = null;
   $("job-state").textContent = jobState;
-  $("job-phase").textContent = "";
+  showPhase([]);
   try {
     const { body: job } = await api(`/jobs/${state.jobId}`);
     setProgress(job.frames_done, job.frames_total);
