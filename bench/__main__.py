@@ -1,10 +1,13 @@
 """Run the benchmarks and print one table: ``python -m bench [names...]``.
 
-Names: simulator, mla, accuracy, speed, render, serial, camera, station, web
-(the default: all of them) and crosscheck (the core on an independent
+Names: simulator, mla, accuracy, speed, render, lab, serial, camera, station, web, fleet
+(the default: all of them), crosscheck (the core on an independent
 renderer's sweeps; not in the default set, it renders for an hour the first
-time). Each module ``bench.bench_<name>`` exposes ``run() -> list[dict]``
-with rows ``name, value, unit, target, ok``.
+time) and focus (focus plane, a, b, priors and uncertainty coverage on three
+renderers; not in the default set, it renders for hours the first time; options
+with ``python -m bench.bench_focus --help``). Each module ``bench.bench_<name>``
+exposes ``run() -> list[dict]`` with rows ``name, value, unit, target, ok`` (and
+an optional ``note``, printed under the table).
 """
 
 from __future__ import annotations
@@ -13,7 +16,19 @@ import importlib
 import sys
 from typing import Any
 
-ALL = ("simulator", "mla", "accuracy", "speed", "render", "serial", "camera", "station", "web")
+ALL = (
+    "simulator",
+    "mla",
+    "accuracy",
+    "speed",
+    "render",
+    "lab",
+    "serial",
+    "camera",
+    "station",
+    "web",
+    "fleet",
+)
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
@@ -30,6 +45,11 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             f"{str(r['name']).ljust(w)}  {float(r['value']):12.4f}  {str(r['unit']):<5} "
             f"{target:>10}  {ok}"
         )
+    notes = [r for r in rows if r.get("note") and r.get("ok") is False]
+    if notes:
+        print("\nnotes on failed rows:")
+        for r in notes:
+            print(f"  {r['name']}: {r['note']}")
 
 
 def main(argv: list[str]) -> int:

@@ -6,6 +6,10 @@
   packets, numpy frame).  Target: >= 8 frames/s.  Every frame is checked to be the
   served pattern, so the rate counts correct frames only.
 * harvesters: 4096 x 4096 Mono8 frames from the TLSimu GenTL producer (informative).
+* decoding (:mod:`drivers.pixels`): a 5120 x 5120 frame of each packed format (Mono10p,
+  Mono12p, Mono12Packed) and of Mono12 (16-bit words with the range check), in MB/s
+  of wire data and ms per frame; harvesters' own unpacking of the same buffer beside
+  it.  Target: a packed frame decodes in <= 200 ms (well inside a sweep step).
 
 Run: ``python -m bench.bench_camera [--frames 30]``.
 """
@@ -98,9 +102,74 @@ def _harvesters_rows(frames: int) -> list[dict[str, Any]]:
     ]
 
 
+DECODE_TARGET_MS = 200.0
+
+
+def _best_ms(action: Any, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        action()
+        best = min(best, time.perf_counter() - start)
+    return best * 1000.0
+
+
+def _decode_rows(repeats: int = 5) -> list[dict[str, Any]]:
+    from harvesters.util.pfnc import Dictionary
+
+    from drivers.pixels import decode_mono, mono_format
+
+    rows: list[dict[str, Any]] = []
+    rng = np.random.default_rng(1)
+    for name in ("Mono10p", "Mono12p", "Mono12Packed", "Mono12"):
+        fmt = mono_format(name)
+        nbytes = fmt.buffer_bytes(SENSOR * SENSOR)
+        if fmt.packed:
+            raw = rng.integers(0, 256, nbytes, dtype=np.uint8)
+        else:
+            raw = rng.integers(0, 4096, SENSOR * SENSOR, dtype=np.uint16).view(np.uint8)
+        ms = _best_ms(
+            lambda raw=raw, name=name: decode_mono(
+                raw, width=SENSOR, height=SENSOR, pixel_format=name, device="bench"
+            ),
+            repeats,
+        )
+        rows.append(
+            {
+                "name": f"decode {name} {SENSOR}x{SENSOR} ({nbytes / 1e6:.1f} MB)",
+                "value": ms,
+                "unit": "ms",
+                "target": None,
+                "ok": bool(ms <= DECODE_TARGET_MS),
+            }
+        )
+        rows.append(
+            {
+                "name": f"decode {name} throughput",
+                "value": nbytes / 1e6 / (ms / 1000.0),
+                "unit": "MB/s",
+                "target": None,
+                "ok": None,
+            }
+        )
+        if fmt.packed:
+            proxy = Dictionary.get_proxy(symbolic=name)
+            ref_ms = _best_ms(lambda raw=raw, proxy=proxy: proxy.expand(raw), 2)
+            rows.append(
+                {
+                    "name": f"  harvesters' expand of the same {name} buffer",
+                    "value": ref_ms,
+                    "unit": "ms",
+                    "target": None,
+                    "ok": None,
+                }
+            )
+    return rows
+
+
 def run(frames: int = 30) -> list[dict[str, Any]]:
     """Rows: name, value, unit, target (None = informative), ok (None = no target)."""
-    return _aravis_rows(frames) + _harvesters_rows(frames)
+    return _decode_rows() + _aravis_rows(frames) + _harvesters_rows(frames)
 
 
 def main(argv: list[str] | None = None) -> int:

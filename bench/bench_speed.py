@@ -1,7 +1,10 @@
 """Speed of the ESIF core: one frame's analysis, and a full-size 100-frame calibration.
 
-- one frame's analysis (3000x1000 and 5120x5120), target <= 0.3 s for the ROI the
-  station streams (3000x1000), so analysis keeps up with acquisition;
+- one frame's analysis (3000x1000 and 5120x5120), target <= 0.15 s for the ROI the
+  station streams (3000x1000), so analysis keeps up with acquisition (wall time and
+  the process's CPU time: the wall time doubles when other jobs share the 2 cores);
+- ``lfcal calibrate`` of 100 frames of 3000x1000 (the accuracy benchmark's cached
+  ``paper`` sweep), target <= 15 s on 2 idle cores; the load average is printed beside;
 - ``lfcal calibrate`` of a 100-frame 5120x5120 sweep, target <= 120 s: projected from
   the measured white-image fit, PNG decode and per-frame analysis times on 2 worker
   processes (rendering 100 full frames for the benchmark alone takes ~50 min), and
@@ -55,10 +58,12 @@ def _time_frames(width: int, height: int, n: int) -> dict[str, float]:
     ]
     analyzer.analyze(0, float(rails[0]), frames[0])  # builds the pixel map once per sweep
     times = []
+    cpu = []
     for k, (r, img) in enumerate(zip(rails, frames, strict=True)):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         analyzer.analyze(k, float(r), img)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     shape = (height, width)
     data = encode_image(frames[0], expected_shape=shape, bit_depth=12, name="f.png")
     with tempfile.TemporaryDirectory() as tmp:
@@ -67,7 +72,33 @@ def _time_frames(width: int, height: int, n: int) -> dict[str, float]:
         t0 = time.perf_counter()
         decode_image(path.read_bytes(), "f.png", expected_shape=shape, bit_depth=12)
         decode_s = time.perf_counter() - t0
-    return {"fit_s": fit_s, "frame_s": float(np.median(times)), "decode_s": decode_s}
+    return {
+        "fit_s": fit_s,
+        "frame_s": float(np.median(times)),
+        "frame_cpu_s": float(np.median(cpu)),
+        "decode_s": decode_s,
+    }
+
+
+def _calibrate_small() -> list[dict[str, Any]]:
+    """``calibrate_archive`` of the accuracy benchmark's 100-frame 3000x1000 ``paper`` sweep."""
+    from bench.bench_accuracy import _sweep
+    from calibration.pipeline import calibrate_archive
+
+    path = _sweep("paper", 100)
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    calibrate_archive(path)
+    seconds = time.perf_counter() - t0
+    return [
+        {
+            "name": f"calibrate 100 frames 3000x1000 (load average {load:.1f})",
+            "value": seconds,
+            "unit": "s",
+            "target": 15.0,
+            "ok": seconds <= 15.0,
+        }
+    ]
 
 
 FULL_SWEEP = Path("out/bench/full_paper_5120")
@@ -108,12 +139,20 @@ def run(n: int = 5) -> list[dict[str, Any]]:
     projected = full["fit_s"] + 100 * (full["frame_s"] + full["decode_s"]) / workers
     return [
         {
-            "name": "analysis of one 3000x1000 frame (median)",
+            "name": f"analysis of one 3000x1000 frame (median; load average {os.getloadavg()[0]:.1f})",
             "value": small["frame_s"],
             "unit": "s",
-            "target": 0.3,
-            "ok": small["frame_s"] <= 0.3,
+            "target": 0.15,
+            "ok": small["frame_s"] <= 0.15,
         },
+        {
+            "name": "analysis of one 3000x1000 frame, CPU time (median)",
+            "value": small["frame_cpu_s"],
+            "unit": "s",
+            "target": 0.15,
+            "ok": small["frame_cpu_s"] <= 0.15,
+        },
+        *_calibrate_small(),
         {
             "name": "analysis of one 5120x5120 frame (median)",
             "value": full["frame_s"],

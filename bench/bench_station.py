@@ -16,7 +16,7 @@ analysis worker processes.
   job's ``succeeded`` state with the calibration result stored.
 
 The simulated camera's frames are cached per bench state under
-``out/bench/station-frames`` (:mod:`station.sim_cache`): the first run renders
+``out/bench/station-frames`` (``[camera] frame_cache``, :mod:`drivers.sim.frame_cache`): the first run renders
 each of the 101 frames once (~4 s each, so ~7 min); later runs take ~1 min.
 Rendering counts as exposure, so caching changes neither measurement -- except
 that cached grabs are faster than a real camera's, which makes the analysis's
@@ -71,13 +71,13 @@ def _row(
 
 def run(frames: int = 100, width: int = WIDTH, height: int = HEIGHT) -> list[dict[str, Any]]:
     """Rows: name, value, unit, target (None = informative), ok (None = no target)."""
-    from station.config import load_config
+    from station.config import load_config, with_frame_cache
     from station.orchestrator import Orchestrator
     from station.store import JobState
 
     with tempfile.TemporaryDirectory(prefix="lfcal-bench-station-") as tmp:
         config = load_config(_config_file(Path(tmp), width, height))
-        station = Orchestrator(config, sim_frame_cache=CACHE).start()
+        station = Orchestrator(with_frame_cache(config, CACHE)).start()
         try:
             events = station.subscribe()
             t0 = time.monotonic()

@@ -177,11 +177,17 @@ class CameraInfo:
 
 @dataclass
 class OpticsInfo:
-    """``optics``: main-lens focal length F, microlens focal length f, microlens pitch D (mm)."""
+    """``optics``: main-lens focal length F, microlens focal length f, microlens pitch D (mm).
+
+    The optional tolerances (mm, 1 sigma) say how far the data-sheet F and f
+    may be off; absent, the calibration uses documented defaults.
+    """
 
     main_focal_mm: float
     mla_focal_mm: float
     mla_pitch_mm: float
+    main_focal_tolerance_mm: float | None = None
+    mla_focal_tolerance_mm: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -196,10 +202,15 @@ class BoardInfo:
 
 @dataclass
 class RailInfo:
-    """``rail``: ``u = zero_object_distance_mm + direction·rail_mm`` (mm)."""
+    """``rail``: ``u = zero_object_distance_mm + direction·rail_mm`` (mm).
+
+    ``zero_object_distance_tolerance_mm`` (optional, 1 sigma): how well the rail
+    zero distance is known (measured with a ruler: a millimetre or two).
+    """
 
     zero_object_distance_mm: float
     direction: int = 1
+    zero_object_distance_tolerance_mm: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -266,6 +277,9 @@ class SweepManifest:
             "mla_focal_mm": self.optics.mla_focal_mm,
             "mla_pitch_mm": self.optics.mla_pitch_mm,
         }
+        for key in ("main_focal_tolerance_mm", "mla_focal_tolerance_mm"):
+            if getattr(self.optics, key) is not None:
+                optics[key] = getattr(self.optics, key)
         _merge_extra(optics, self.optics.extra)
         board: dict[str, Any] = {
             "square_mm": self.board.square_mm,
@@ -276,6 +290,8 @@ class SweepManifest:
             "zero_object_distance_mm": self.rail.zero_object_distance_mm,
             "direction": self.rail.direction,
         }
+        if self.rail.zero_object_distance_tolerance_mm is not None:
+            rail["zero_object_distance_tolerance_mm"] = self.rail.zero_object_distance_tolerance_mm
         _merge_extra(rail, self.rail.extra)
         out: dict[str, Any] = {
             "format": FORMAT,
@@ -322,7 +338,9 @@ class SweepManifest:
                 main_focal_mm=float(obj["optics"]["main_focal_mm"]),
                 mla_focal_mm=float(obj["optics"]["mla_focal_mm"]),
                 mla_pitch_mm=float(obj["optics"]["mla_pitch_mm"]),
-                extra=_unknown(obj["optics"], _OPTICS_KEYS),
+                main_focal_tolerance_mm=_optional_float(obj["optics"], "main_focal_tolerance_mm"),
+                mla_focal_tolerance_mm=_optional_float(obj["optics"], "mla_focal_tolerance_mm"),
+                extra=_unknown(obj["optics"], _OPTICS_KEYS + _OPTICS_OPTIONAL),
             ),
             board=BoardInfo(
                 square_mm=float(obj["board"]["square_mm"]),
@@ -332,7 +350,10 @@ class SweepManifest:
             rail=RailInfo(
                 zero_object_distance_mm=float(obj["rail"]["zero_object_distance_mm"]),
                 direction=obj["rail"]["direction"],
-                extra=_unknown(obj["rail"], _RAIL_KEYS),
+                zero_object_distance_tolerance_mm=_optional_float(
+                    obj["rail"], "zero_object_distance_tolerance_mm"
+                ),
+                extra=_unknown(obj["rail"], _RAIL_KEYS + _RAIL_OPTIONAL),
             ),
             white=obj["white"],
             frames=frames,
@@ -344,8 +365,17 @@ class SweepManifest:
 _TOP_KEYS = ("format", "camera", "optics", "board", "rail", "white", "white_sha256", "frames")
 _CAMERA_KEYS = ("width", "height", "pixel_pitch_mm", "bit_depth", "principal_point_px")
 _OPTICS_KEYS = ("main_focal_mm", "mla_focal_mm", "mla_pitch_mm")
+_OPTICS_OPTIONAL = ("main_focal_tolerance_mm", "mla_focal_tolerance_mm")
 _BOARD_KEYS = ("square_mm", "reference_gap_mm")
 _RAIL_KEYS = ("zero_object_distance_mm", "direction")
+_RAIL_OPTIONAL = ("zero_object_distance_tolerance_mm",)
+
+
+def _optional_float(section: Mapping[str, Any], key: str) -> float | None:
+    value = section.get(key)
+    return None if value is None else float(value)
+
+
 _FRAME_KEYS = ("index", "rail_mm", "file", "sha256")
 
 
@@ -468,6 +498,9 @@ def validate_manifest(obj: Any) -> list[str]:
     if optics is not None:
         for key in _OPTICS_KEYS:
             c.positive_number(optics, "optics", key)
+        for key in _OPTICS_OPTIONAL:
+            if optics.get(key) is not None:
+                c.positive_number(optics, "optics", key)
 
     board = c.section(obj, "board")
     if board is not None:
@@ -487,6 +520,9 @@ def validate_manifest(obj: Any) -> list[str]:
         ok, v = c.get(rail, "rail", "direction")
         if ok and not (_is_int(v) and v in (1, -1)):
             c.add("rail.direction", f"must be 1 or -1, got {_show(v)}")
+        for key in _RAIL_OPTIONAL:
+            if rail.get(key) is not None:
+                c.positive_number(rail, "rail", key)
 
     white = obj.get("white")
     if "white" not in obj:
@@ -727,6 +763,15 @@ def encode_image(
 def sha256_hex(data: bytes) -> str:
     """SHA-256 of ``data`` as 64 lower-case hex digits."""
     return hashlib.sha256(data).hexdigest()
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes as 64 lower-case hex digits (read in 1 MiB chunks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 # -------------------------------------------------------------------------- reader

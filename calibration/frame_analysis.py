@@ -31,6 +31,7 @@ from .corners import (
     find_junctions,
     measure_corners,
 )
+from .edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 from .lens_grid import LensGrid
 from .optics import image_distance
 
@@ -63,9 +64,11 @@ class CornerFit:
     Q_se: float = float("nan")
     Q_eq3: float = float("nan")
     main_image_px: tuple[float, float] = (float("nan"), float("nan"))
+    main_image_se_px: tuple[float, float] = (float("nan"), float("nan"))
     residual_rms_px: float = float("nan")
     size_px: float = float("nan")
     edge_width_px: float = float("nan")
+    esf: BinnedEsf | None = None
     note: str = ""
 
     @property
@@ -81,6 +84,7 @@ class CornerFit:
             "Q_se": self.Q_se,
             "Q_eq3": self.Q_eq3,
             "main_image_px": list(self.main_image_px),
+            "main_image_se_px": list(self.main_image_se_px),
             "residual_rms_px": self.residual_rms_px,
             "size_px": self.size_px,
             "edge_width_px": self.edge_width_px,
@@ -188,12 +192,30 @@ def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
     fit.Q = float(q)
     fit.Q_se = float(np.sqrt(cov[0, 0]))
     fit.main_image_px = (float(-coef[1] / q), float(-coef[2] / q))
+    # r = -c/Q with Q = coef0 - 1: first-order propagation of the fit covariance
+    fit.main_image_se_px = tuple(  # type: ignore[assignment]
+        float(
+            np.sqrt(
+                max(
+                    (coef[k] / q**2) ** 2 * cov[0, 0]
+                    + cov[k, k] / q**2
+                    - 2.0 * coef[k] / q**3 * cov[0, k],
+                    0.0,
+                )
+            )
+        )
+        for k in (1, 2)
+    )
     fit.residual_rms_px = float(np.sqrt(np.mean(r[use] ** 2)))
     used = [m for m, u in zip(fit.measurements, use, strict=True) if u]
     sizes = np.array([m.size_px for m in used])
     fit.size_px = float(np.nanmean(sizes)) if np.isfinite(sizes).any() else float("nan")
     fit.edge_width_px = float(np.mean([m.edge_width_px for m in used]))
     fit.Q_eq3 = _eq3(used, ctx)
+    profiles = EdgeProfiles.concatenate(
+        [m.edge_profiles for m in used if m.edge_profiles is not None]
+    )
+    fit.esf = frame_esf(profiles, start_width_px=fit.edge_width_px)
 
 
 def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:

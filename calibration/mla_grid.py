@@ -51,8 +51,16 @@ within ~0.001 px RMS, rotation within ~1e-5°, image pitch within ~2e-5. The
 plane normalization removes ~80 % of the vignetting pull; what remains is a
 radial pull toward the axis proportional to the distance from it, i.e. a
 pure scale of the image lattice about the principal point (image pitch about
-2e-5 low, micro-image centres ~0.04 px off at 2500 px from the axis). Such a
-scale cancels exactly in the lens centres, which use the exact ``D/δ`` pitch.
+2e-5 low, micro-image centres ~0.04 px off at 2500 px from the axis). Most of
+it is the shading of the rims, not of the plateau: a rim is the main aperture's
+edge blurred by the microlens aperture scaled by ``|β - Q0|`` (``β = b/L``; the
+aperture sits ``L`` in front of the MLA), and the angular weights that make the
+shading (:mod:`calibration.shading`, ``η = Var(p)·c``) move that blur's centroid
+toward the lens centre, so each disc is scaled about its lens centre by
+``1 + (β - Q0)·η`` and the lattice's ``(L+b)/L`` reads ``1 + β·(1 + (β - Q0)·η)``
+(-1.5e-5 for the paper's optics). :mod:`calibration.camera_model` uses the
+measured scale with that model. The scale cancels exactly in the lens centres,
+which use the exact ``D/δ`` pitch.
 It also means the lens lattice is only as right as ``principal_point_px``:
 an error ``e`` in the principal point moves the lens centres by about
 ``e·(1 − L/(L+b))`` (≈ 5 % of ``e``).
@@ -73,6 +81,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from .lens_grid import LensGrid
+from .shading import WhiteShading
 
 __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
 
@@ -126,6 +135,7 @@ class MlaGrid:
     residual_x: NDArray[np.float64] = field(repr=False)
     residual_y: NDArray[np.float64] = field(repr=False)
     lens_status: NDArray[np.int8] = field(repr=False)
+    shading: WhiteShading | None = None
 
     @property
     def residual_px(self) -> NDArray[np.float64]:
@@ -136,6 +146,25 @@ class MlaGrid:
     def used(self) -> NDArray[np.bool_]:
         """Per measured lens: whether it entered the final lattice fit."""
         return self.lens_status == STATUS_USED
+
+    @property
+    def scale_se(self) -> float:
+        """Statistical 1σ of :attr:`scale` (``(L+b)/L``) from the lattice fit's residuals.
+
+        The pitch's least-squares error ``σ/sqrt(Σ(i'² + j'²))`` (``i'``, ``j'`` the
+        lens indices about their mean, ``σ`` the residual RMS per coordinate),
+        divided by the lens pitch. The systematic pull of the shaded rims
+        (module docstring) is not included: :mod:`calibration.camera_model`
+        models it.
+        """
+        keep = self.used
+        if keep.sum() < 3:
+            return float("inf")
+        i = self.lens_i[keep] - self.lens_i[keep].mean()
+        j = self.lens_j[keep] - self.lens_j[keep].mean()
+        sigma = float(np.sqrt(np.mean(np.r_[self.residual_x[keep], self.residual_y[keep]] ** 2)))
+        pitch_se = sigma / float(np.sqrt(np.sum(i**2 + j**2)))
+        return pitch_se / self.lens_pitch_px
 
     def labels(
         self, shape: tuple[int, int], radius_px: float | None = None
@@ -153,6 +182,7 @@ class MlaGrid:
             "lens_pitch_px": self.lens_pitch_px,
             "rotation_deg": self.rotation_deg,
             "scale": self.scale,
+            "scale_se": self.scale_se,
             "disc_radius_px": self.disc_radius_px,
             "principal_point_px": [float(v) for v in self.principal_point_px],
             "n_lenses_used": self.n_lenses_used,
@@ -162,6 +192,7 @@ class MlaGrid:
             "residual_max_px": float(self.residual_px[self.used].max(initial=0.0)),
             "iterations": self.iterations,
             "background": self.background,
+            "shading": None if self.shading is None else self.shading.to_dict(),
         }
         if include_lenses:
             out["lenses"] = {

@@ -3,161 +3,59 @@
 :class:`FrameAnalyzer` holds what every frame of a sweep shares (the MLA grid
 fitted on the white image, the optics priors, the board) and turns one raw
 frame into a :class:`FrameSummary`; it is picklable, so the station can run it
-in worker processes while acquisition goes on. :func:`combine` turns the frame
-summaries into a :class:`CalibrationResult`: the focus plane (Eq. 7–9 and the
-whole-sweep blur model), ``Q`` at the focus plane, ``a``, ``b``, ``p`` (Eq.
-1–5) and the global disparity + blur fit, with uncertainties and a consistency
-check. :func:`calibrate_archive` does both for an archive on disk.
+in worker processes while acquisition goes on. :func:`combine`
+(:mod:`calibration.combine`) turns the frame summaries into a
+:class:`CalibrationResult`. :func:`calibrate_archive` does both for an archive
+on disk.
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import multiprocessing
 import os
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .archive import ImageError, SweepArchive, SweepManifest
-from .board import Board
-from .corners import CornerOptions, MicroImageMap
-from .focus import FocusAtSweepEdge, corner_size_mm, fit_blur_model, paper_focus
+from .archive import ImageError, SweepArchive
+from .camera_model import ModelError, check_priors
+from .combine import combine
+from .corners import MicroImageMap
+from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
-from .optics import focused_virtual_distance
-from .parameters import Estimate, global_fit, paper_estimate, q_at
-from .version import DISTRIBUTION, software_version
+from .shading import measure_shading
+from .summary import (
+    CalibrationError,
+    CalibrationOptions,
+    CalibrationResult,
+    FocusAtEdgeError,
+    FocusNotDeterminedError,
+    FrameSummary,
+    PriorError,
+    SweepGeometry,
+)
 
-FOCUS_SYSTEMATIC_MM = 0.15
-"""Systematic uncertainty of the blur-model focus plane (mm), added in quadrature to
-its statistical one (0.05-0.1 mm on 100-frame sweeps). Measured focus-plane errors:
-0.02-0.08 mm on the three presets of the project's simulator, 0.08-0.12 mm on the
-three sweeps of the independent renderer (``bench/bench_crosscheck.py``)."""
-
-
-class CalibrationError(ValueError):
-    """The sweep cannot be calibrated; ``exit_code`` is the CLI's documented code."""
-
-    exit_code = 3
-
-    def __init__(self, message: str, partial: dict[str, Any] | None = None) -> None:
-        super().__init__(message)
-        self.partial = partial
-
-
-class FocusAtEdgeError(CalibrationError):
-    """The focus plane lies at the edge of the sweep (extend the rail range)."""
-
-    exit_code = 4
-
-
-@dataclass(frozen=True)
-class SweepGeometry:
-    """Priors from the manifest or station configuration (mm, px)."""
-
-    width: int
-    height: int
-    pixel_pitch_mm: float
-    principal_point_px: tuple[float, float]
-    main_focal_mm: float
-    mla_focal_mm: float
-    mla_pitch_mm: float
-    board: Board
-    zero_object_distance_mm: float
-    direction: int
-
-    @classmethod
-    def from_manifest(cls, m: SweepManifest) -> SweepGeometry:
-        return cls(
-            width=m.camera.width,
-            height=m.camera.height,
-            pixel_pitch_mm=m.camera.pixel_pitch_mm,
-            principal_point_px=m.camera.pp,
-            main_focal_mm=m.optics.main_focal_mm,
-            mla_focal_mm=m.optics.mla_focal_mm,
-            mla_pitch_mm=m.optics.mla_pitch_mm,
-            board=Board(square_mm=m.board.square_mm, reference_gap_mm=m.board.reference_gap_mm),
-            zero_object_distance_mm=m.rail.zero_object_distance_mm,
-            direction=m.rail.direction,
-        )
-
-    @property
-    def lens_pitch_px(self) -> float:
-        """``D/δ``: lens-centre pitch on the sensor (px)."""
-        return self.mla_pitch_mm / self.pixel_pitch_mm
-
-    def to_dict(self) -> dict[str, Any]:
-        """The priors a calibration used (JSON-ready): recorded with every result."""
-        return {
-            "camera": {
-                "width": self.width,
-                "height": self.height,
-                "pixel_pitch_mm": self.pixel_pitch_mm,
-                "principal_point_px": list(self.principal_point_px),
-            },
-            "optics": {
-                "main_focal_mm": self.main_focal_mm,
-                "mla_focal_mm": self.mla_focal_mm,
-                "mla_pitch_mm": self.mla_pitch_mm,
-                "lens_pitch_px": self.lens_pitch_px,
-            },
-            "board": {
-                "square_mm": self.board.square_mm,
-                "reference_gap_mm": self.board.reference_gap_mm,
-            },
-            "rail": {
-                "zero_object_distance_mm": self.zero_object_distance_mm,
-                "direction": self.direction,
-            },
-        }
-
-    def object_distance_mm(self, rail_mm: float) -> float:
-        return self.zero_object_distance_mm + self.direction * rail_mm
-
-    def rail_mm(self, object_distance_mm: float) -> float:
-        return (object_distance_mm - self.zero_object_distance_mm) / self.direction
-
-
-@dataclass(frozen=True)
-class CalibrationOptions:
-    """Options of the whole calibration (keyword-only tuning, sensible defaults)."""
-
-    interior_fraction: float = 0.8
-    corner: CornerOptions = field(default_factory=CornerOptions)
-    min_frames: int = 5
-
-
-@dataclass
-class FrameSummary:
-    """What one frame contributes (JSON-ready through :meth:`to_dict`)."""
-
-    index: int
-    rail_mm: float
-    object_distance_mm: float
-    Q: float = float("nan")
-    Q_se: float = float("nan")
-    Q_eq3: float = float("nan")
-    Ls_px: float = float("nan")
-    Lr_px: float = float("nan")
-    edge_width_px: float = float("nan")
-    standard: dict[str, Any] | None = None
-    reference: dict[str, Any] | None = None
-    corners: dict[str, list[list[float]]] = field(default_factory=dict)
-    rejected: dict[str, int] = field(default_factory=dict)
-    error: str = ""
-
-    def to_dict(self, *, with_corners: bool = True) -> dict[str, Any]:
-        d = dict(self.__dict__)
-        if not with_corners:
-            d.pop("corners")
-        return _json_clean(d)
+__all__ = [
+    "CalibrationError",
+    "CalibrationOptions",
+    "CalibrationResult",
+    "FocusAtEdgeError",
+    "FocusNotDeterminedError",
+    "FrameAnalyzer",
+    "FrameSummary",
+    "PriorError",
+    "SweepGeometry",
+    "calibrate_archive",
+    "combine",
+    "default_workers",
+]
 
 
 def _corner_rows(fit: CornerFit | None) -> list[list[float]]:
@@ -202,7 +100,8 @@ class FrameAnalyzer:
             lens_pitch_px=geometry.lens_pitch_px,
             principal_point_px=geometry.principal_point_px,
         )
-        return cls(geometry, grid, options)
+        shading = measure_shading(white, grid.image_grid, background=grid.background)
+        return cls(geometry, dataclasses.replace(grid, shading=shading), options)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -234,238 +133,18 @@ class FrameAnalyzer:
             "standard": _corner_rows(r.standard),
             "reference": _corner_rows(r.reference),
         }
+        esfs = [fit.esf for fit in (r.standard, r.reference) if fit is not None and fit.esf]
+        summary.esf = {
+            fit.name: fit.esf.to_dict()
+            for fit in (r.standard, r.reference)
+            if fit is not None and fit.esf is not None
+        }
+        if esfs:
+            summary.edge_spread_px = BinnedEsf.merge(esfs).spread_px()
         summary.rejected = r.rejected
         if not np.isfinite(summary.Q):
             summary.error = "no board corner found in this frame"
         return summary
-
-
-@dataclass
-class CalibrationResult:
-    """The calibration of one sweep (JSON-ready through :meth:`to_dict`)."""
-
-    data: dict[str, Any]
-
-    def to_dict(self) -> dict[str, Any]:
-        return self.data
-
-
-def _json_clean(obj: Any) -> Any:
-    """Floats that are not finite become None (JSON has no NaN); numpy scalars become Python."""
-    if isinstance(obj, dict):
-        return {str(k): _json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_json_clean(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
-def _frame_arrays(frames: list[FrameSummary]) -> dict[str, NDArray[np.float64]]:
-    keys = ("object_distance_mm", "rail_mm", "Q", "Q_se", "Ls_px", "Lr_px", "edge_width_px")
-    return {k: np.array([getattr(f, k) for f in frames], dtype=np.float64) for k in keys}
-
-
-def combine(
-    frames: Iterable[FrameSummary],
-    geometry: SweepGeometry,
-    grid: MlaGrid,
-    *,
-    options: CalibrationOptions | None = None,
-) -> CalibrationResult:
-    """Focus plane, parameters and uncertainties from the frame summaries.
-
-    Raises :class:`CalibrationError` (with the per-frame results in ``partial``)
-    when too few frames have corners, and :class:`FocusAtEdgeError` when the
-    blur minimum is at the edge of the sweep.
-    """
-    opts = options or CalibrationOptions()
-    g = geometry
-    frames = sorted(frames, key=lambda fs: fs.object_distance_mm)
-    arr = _frame_arrays(frames)
-    u = arr["object_distance_mm"]
-    Lp, La = corner_size_mm(arr["Ls_px"], arr["Lr_px"], g.board.reference_gap_mm)
-    f, D, delta, F = g.mla_focal_mm, g.mla_pitch_mm, g.pixel_pitch_mm, g.main_focal_mm
-    frames_out = []
-    for k, fs in enumerate(frames):
-        d = fs.to_dict(with_corners=True)
-        d["patch_size_px"] = fs.Q * D / delta
-        d["Lp_mm_per_px"] = float(Lp[k])
-        d["La_mm"] = float(La[k])
-        frames_out.append(d)
-    n_ref = int(sum(1 for fs in frames if fs.reference and fs.reference.get("found")))
-    n_std = int(sum(1 for fs in frames if fs.standard and fs.standard.get("found")))
-    warnings: list[str] = []
-    partial: dict[str, Any] = {
-        "format": "lfcal-result/1",
-        "software": {"name": DISTRIBUTION, "version": software_version()},
-        "inputs": g.to_dict(),
-        "mla": grid.to_dict(),
-        "frames": frames_out,
-        "corners_found": {
-            "standard_frames": n_std,
-            "reference_frames": n_ref,
-            "frames": len(frames),
-        },
-    }
-    good = np.isfinite(arr["Q"])
-    if good.sum() < opts.min_frames:
-        raise CalibrationError(
-            f"a board corner was found in only {int(good.sum())} of {len(frames)} frames "
-            f"(need {opts.min_frames}): is the board aligned with the lens axis and in view?",
-            _json_clean(partial),
-        )
-    if n_ref == 0:
-        warnings.append(
-            "the reference corner (2s, 0) was not found in any frame (outside the ROI?): "
-            "Lr, Lp and La are not available; the focus plane comes from the standard "
-            "corner's blur and the disparity model"
-        )
-    # a first global fit (disparity only) gives b for the blur-shape curvature; then the
-    # blur-model focus and Q there give a better b, and the blur model is fitted again
-    disp = global_fit(u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta)
-    b_guess = disp.estimate.b_mm if disp.estimate.b_mm > f else f * 1.2
-    dq_du = _local_slope(u, arr["Q"], float(np.nanmedian(u)))
-    for _ in range(3):
-        a_f_guess = focused_virtual_distance(f, b_guess)
-        try:
-            blur = fit_blur_model(u, arr["edge_width_px"], F=F, a_f=a_f_guess)
-        except FocusAtSweepEdge as exc:
-            partial["error"] = str(exc)
-            raise FocusAtEdgeError(str(exc), _json_clean(partial)) from exc
-        u_focus = blur.object_distance_mm
-        u_focus_se = float(np.hypot(blur.object_distance_se_mm, FOCUS_SYSTEMATIC_MM))
-        q_f, q_f_se = q_at(u, arr["Q"], arr["Q_se"], u_focus)
-        # the focus-plane uncertainty moves Q along the Q(u) curve
-        dq_du = _local_slope(u, arr["Q"], u_focus)
-        b_new = f * (1.0 + q_f)
-        converged = abs(b_new - b_guess) < 1e-7 * b_guess
-        b_guess = b_new
-        if converged:
-            break
-    joint = global_fit(
-        u, arr["Q"], arr["Q_se"], F=F, f=f, D=D, delta=delta, edge_width_px=arr["edge_width_px"]
-    )
-    q_total_se = float(np.hypot(q_f_se, dq_du * u_focus_se))
-    esif = paper_estimate(
-        q_f,
-        q_total_se,
-        f=f,
-        D=D,
-        delta=delta,
-        focus_object_distance_mm=u_focus,
-        focus_se_mm=u_focus_se,
-    )
-    paper = paper_focus(u, La)
-    paper_est: Estimate | None = None
-    if paper is not None:
-        q_p, q_p_se = q_at(u, arr["Q"], arr["Q_se"], paper.object_distance_mm)
-        paper_est = paper_estimate(
-            q_p, q_p_se, f=f, D=D, delta=delta, focus_object_distance_mm=paper.object_distance_mm
-        )
-    consistency = _consistency(esif, joint.estimate)
-    if not consistency["consistent"]:
-        warnings.append(
-            f"the ESIF estimate and the global fit disagree: b by "
-            f"{100 * consistency['b_relative']:.3f} % ({consistency['b_sigma']:.1f} sigma), a by "
-            f"{100 * consistency['a_relative']:.3f} %: check the rail zero distance, the rail "
-            "direction and the optics priors"
-        )
-    result = dict(partial)
-    result.update(
-        {
-            "a_mm": esif.a_mm,
-            "b_mm": esif.b_mm,
-            "Q": esif.Q,
-            "patch_size_px": esif.patch_size_px,
-            "uncertainty": {
-                "a_mm": esif.a_se_mm,
-                "b_mm": esif.b_se_mm,
-                "Q": esif.Q_se,
-                "patch_size_px": esif.patch_size_se_px,
-                "focus_object_distance_mm": u_focus_se,
-            },
-            "focus": {
-                "object_distance_mm": u_focus,
-                "rail_mm": g.rail_mm(u_focus),
-                "uncertainty_mm": u_focus_se,
-                "method": "blur model fitted to the edge widths of every frame",
-                "blur_model": {
-                    "A_px2": blur.A_px2,
-                    "B_px2": blur.B_px2,
-                    "C_px2": blur.C_px2,
-                    "v0_mm": blur.v0_mm,
-                    "residual_rms_px2": blur.residual_rms_px2,
-                },
-                "paper_argmin_La": None
-                if paper is None
-                else {
-                    "object_distance_mm": paper.object_distance_mm,
-                    "rail_mm": g.rail_mm(paper.object_distance_mm),
-                    "best_frame_index": frames[paper.best_index].index,
-                },
-                "disparity_model": {
-                    "object_distance_mm": joint.estimate.focus_object_distance_mm,
-                    "uncertainty_mm": joint.estimate.focus_se_mm,
-                },
-            },
-            "estimates": {
-                "esif": esif.to_dict(),
-                "paper_argmin_La": None if paper_est is None else paper_est.to_dict(),
-                "global": joint.estimate.to_dict(),
-                "disparity_only": disp.estimate.to_dict(),
-            },
-            "consistency": consistency,
-            "curves": {
-                "object_distance_mm": u.tolist(),
-                "edge_width_model_px": blur.width_model_px.tolist(),
-                "inv_Q_model": joint.inv_q_model.tolist(),
-            },
-            "warnings": warnings,
-        }
-    )
-    return CalibrationResult(_json_clean(result))
-
-
-def _local_slope(u: NDArray[np.float64], q: NDArray[np.float64], u0: float) -> float:
-    near = np.isfinite(q) & (np.abs(u - u0) <= 10.0)
-    if near.sum() < 2:
-        near = np.isfinite(q)
-    if near.sum() < 2:
-        return 0.0
-    return float(np.polyfit(u[near], q[near], 1)[0])
-
-
-def _consistency(a: Estimate, b: Estimate) -> dict[str, Any]:
-    """Difference of two estimates of ``b`` and ``a``, in combined sigmas and relative.
-
-    They count as consistent when each difference is within 3 sigma or within
-    a systematic floor (0.05 % on b, 0.25 % on a: the global fit's slope picks
-    up small defocus-dependent disparity biases that its statistical
-    uncertainty does not cover).
-    """
-
-    def sig(x: float, y: float, sx: float, sy: float) -> float:
-        s = math.hypot(sx, sy)
-        return abs(x - y) / s if s > 0 and math.isfinite(s) else float("inf")
-
-    b_sigma = sig(a.b_mm, b.b_mm, a.b_se_mm, b.b_se_mm)
-    a_sigma = sig(a.a_mm, b.a_mm, a.a_se_mm, b.a_se_mm)
-    b_rel = abs(a.b_mm - b.b_mm) / abs(a.b_mm)
-    a_rel = abs(a.a_mm - b.a_mm) / abs(a.a_mm)
-    return {
-        "b_difference_mm": a.b_mm - b.b_mm,
-        "a_difference_mm": a.a_mm - b.a_mm,
-        "b_sigma": b_sigma,
-        "a_sigma": a_sigma,
-        "b_relative": b_rel,
-        "a_relative": a_rel,
-        "consistent": bool(
-            (b_sigma <= 3.0 or b_rel <= 5e-4) and (a_sigma <= 3.0 or a_rel <= 2.5e-3)
-        ),
-    }
 
 
 _WORKER: dict[str, Any] = {}
@@ -504,6 +183,10 @@ def calibrate_archive(
     """
     archive = SweepArchive.open(path)
     geometry = SweepGeometry.from_manifest(archive.manifest)
+    try:
+        check_priors(geometry.priors(), np.array([e.rail_mm for e in archive.manifest.frames]))
+    except ModelError as exc:
+        raise PriorError(str(exc)) from exc
     try:
         white = archive.white()
     except ImageError as exc:

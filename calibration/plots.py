@@ -1,4 +1,4 @@
-"""PNG plots of a calibration: focus curve, disparity, rendered images.
+"""PNG plots of a calibration: focus curve, disparity, residuals, rendered images.
 
 Every function takes ``out`` (a file path, or ``None``) first and returns the
 PNG bytes, so the same call serves the command line (write a file) and the
@@ -132,8 +132,9 @@ def plot_focus_curve(
     the focus plane ``focus_mm`` as a dashed vertical line and the paper's
     ``argmin La`` (``paper_focus_mm``) as a dotted one. Middle panel: the
     standard and reference corner sizes ``Ls``, ``Lr`` (px). With
-    ``edge_width_px`` a third panel shows the edge-spread width per frame (px)
-    and the whole-sweep blur model ``width_model`` that places the focus plane.
+    ``edge_width_px`` a third panel shows the edge spread per frame (RMS width
+    of its line-spread function, px) and the whole-sweep defocus model
+    ``width_model`` that places the focus plane.
     Default size 900×600 px (900×850 with the third panel). Writes ``out`` when
     it is a path; returns the PNG bytes.
     """
@@ -179,14 +180,14 @@ def plot_focus_curve(
     last = ax2
     if widths is not None:
         ax3 = last = axes[2]
-        missing = _points(ax3, u, widths, "edge width", marker="o", ms=3, color="tab:cyan")
+        missing = _points(ax3, u, widths, "edge spread", marker="o", ms=3, color="tab:cyan")
         model = _curve(width_model, u)
         if model is not None:
-            ax3.plot(model[0], model[1], color="tab:orange", lw=1.5, label="blur model")
+            ax3.plot(model[0], model[1], color="tab:orange", lw=1.5, label="defocus model")
         _mark_focus(ax3, focus_mm)
         if missing == len(u):
             _no_data(ax3)
-        ax3.set_ylabel("edge width σ (px)")
+        ax3.set_ylabel("edge spread RMS (px)")
         _legend(ax3)
         ax3.grid(True, alpha=0.3)
     last.set_xlabel("object distance u (mm)")
@@ -255,6 +256,59 @@ def plot_disparity(
         _mark_focus(ax2, float(to_x(np.array([focus_mm]))[0]), name)
     ax2.set_xlabel("main-image distance v (mm)" if main_focal_mm else "object distance u (mm)")
     ax2.set_ylabel("1/Q = a/b")
+    _legend(ax2)
+    ax2.grid(True, alpha=0.3)
+    return _finish(fig, out)
+
+
+def plot_residuals(
+    out: Out,
+    *,
+    object_distance_mm: ArrayLike,
+    Q_residual: ArrayLike,
+    Q_err: ArrayLike | None = None,
+    edge_width_residual_px: ArrayLike | None = None,
+    focus_mm: float | None = None,
+    title: str = "Residuals of the whole-sweep models",
+    size_px: tuple[int, int] = DEFAULT_SIZE_PX,
+) -> bytes:
+    """Per-frame residuals: ``Q − Q_model(u)`` with error bars (top) and the edge width
+    minus the blur model (px, bottom), against the object distance ``u`` (mm).
+
+    A model that fits leaves residuals scattered around zero within their error
+    bars; a trend means the model (or a prior such as the rail zero) is off.
+    Writes ``out`` when it is a path; returns the PNG bytes.
+    """
+    u = _values(object_distance_mm)
+    dq = _values(Q_residual)
+    qe = _values(Q_err, len(u)) if Q_err is not None else np.full(len(u), np.nan)
+    dw = (
+        _values(edge_width_residual_px, len(u))
+        if edge_width_residual_px is not None
+        else np.full(len(u), np.nan)
+    )
+    _same_length(("u", "Q residual", "Q_err", "edge width residual"), (u, dq, qe, dw))
+    fig, (ax, ax2) = _figure(size_px, 2)
+    ok = np.isfinite(u) & np.isfinite(dq)
+    if ok.any():
+        err = np.where(np.isfinite(qe[ok]) & (qe[ok] >= 0), qe[ok], 0.0)
+        missing = int((~ok).sum())
+        label = "Q − global model" + (f" ({missing} missing)" if missing else "")
+        ax.errorbar(u[ok], dq[ok], yerr=err, fmt="o", ms=3, capsize=2, label=label)
+    else:
+        _no_data(ax)
+    ax.axhline(0.0, color="tab:gray", lw=1)
+    _mark_focus(ax, focus_mm)
+    ax.set_ylabel("Q residual")
+    ax.set_title(title)
+    _legend(ax)
+    ax.grid(True, alpha=0.3)
+    if _points(ax2, u, dw, "edge width − blur model", marker="s", ms=3, color="tab:cyan") == len(u):
+        _no_data(ax2)
+    ax2.axhline(0.0, color="tab:gray", lw=1)
+    _mark_focus(ax2, focus_mm)
+    ax2.set_xlabel("object distance u (mm)")
+    ax2.set_ylabel("edge width residual (px)")
     _legend(ax2)
     ax2.grid(True, alpha=0.3)
     return _finish(fig, out)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -185,8 +185,47 @@ def truth(preset: Preset, seed: int = 0) -> dict[str, Any]:
     }
 
 
-def manifest_header(preset: Preset) -> dict[str, Any]:
+@dataclass(frozen=True)
+class DataSheet:
+    """What the manifest claims when it differs from the rendered camera (mm; None: the truth).
+
+    A lab's data sheet is off by a few percent and its ruler by a millimetre
+    or two: this renders one camera and describes it with other values, and
+    optionally states their 1-sigma tolerances.
+    """
+
+    main_focal_mm: float | None = None
+    mla_focal_mm: float | None = None
+    rail_zero_mm: float | None = None
+    main_focal_tolerance_mm: float | None = None
+    mla_focal_tolerance_mm: float | None = None
+    rail_zero_tolerance_mm: float | None = None
+
+    def apply(self, manifest: dict[str, Any]) -> dict[str, Any]:
+        """The manifest with these values (and tolerances) in place of the true ones."""
+        optics, rail = dict(manifest["optics"]), dict(manifest["rail"])
+        for key, value in (
+            ("main_focal_mm", self.main_focal_mm),
+            ("mla_focal_mm", self.mla_focal_mm),
+            ("main_focal_tolerance_mm", self.main_focal_tolerance_mm),
+            ("mla_focal_tolerance_mm", self.mla_focal_tolerance_mm),
+        ):
+            if value is not None:
+                optics[key] = value
+        if self.rail_zero_mm is not None:
+            rail["zero_object_distance_mm"] = self.rail_zero_mm
+        if self.rail_zero_tolerance_mm is not None:
+            rail["zero_object_distance_tolerance_mm"] = self.rail_zero_tolerance_mm
+        return {**manifest, "optics": optics, "rail": rail}
+
+
+def manifest_header(preset: Preset, datasheet: DataSheet | None = None) -> dict[str, Any]:
     """The ``lfcal-sweep/1`` manifest of a simulated sweep, without its frames."""
+    header = _true_header(preset)
+    return header if datasheet is None else datasheet.apply(header)
+
+
+def _true_header(preset: Preset) -> dict[str, Any]:
     cam = preset.camera
     o = cam.optics
     return {
@@ -217,13 +256,16 @@ def write_sweep(
     seed: int = 0,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    datasheet: DataSheet | None = None,
 ) -> Path:
     """Render the preset's sweep into an ``lfcal-sweep/1`` archive plus ``truth.json``.
 
-    Everything is staged in a hidden sibling directory and renamed at the end,
-    so an interrupted run never leaves a complete-looking archive.
+    ``datasheet`` puts other (data-sheet) values than the rendered camera's
+    in the manifest; ``truth.json`` always holds the true ones. Everything is
+    staged in a hidden sibling directory and renamed at the end, so an
+    interrupted run never leaves a complete-looking archive.
     """
-    writer = SweepWriter.create(out_dir, manifest_header(preset), overwrite=overwrite)
+    writer = SweepWriter.create(out_dir, manifest_header(preset, datasheet), overwrite=overwrite)
     try:
         writer.write_white(render_white(preset, seed))
         total = preset.sweep.frames

@@ -7,9 +7,21 @@ Opening never runs GigE Vision discovery (which broadcasts on every interface):
   address the kernel routes to it (found with a UDP ``connect``, which sends nothing).
 * ``AravisCamera(address=..., serial="SN")`` does the same and then checks that the
   camera's ``DeviceSerialNumber`` is ``SN`` (a swapped camera gives ``CameraNotFound``).
+* ``AravisCamera(serial="SN", interface="usb3")`` opens a USB3 Vision camera by serial
+  (or Aravis device id): the GigE Vision interface is disabled first
+  (``arv_disable_interface("GigEVision")``, ``arv_enable_interface("USB3Vision")``), so
+  finding it enumerates the USB bus only and sends nothing on any network.
 * ``AravisCamera(serial="SN", allow_discovery=True)`` (or an address that is an Aravis
-  device name) goes through ``arv_camera_new``, i.e. discovery: only for a dedicated
-  camera network, never the default.
+  device name) goes through ``arv_camera_new`` with GigE Vision enabled, i.e. discovery:
+  only for a dedicated camera network, never the default.
+
+Transport (:class:`drivers.camera.TransportSettings`, ``[camera.transport]``): GVSP packet
+size, inter-packet delay (``GevSCPD``), ``DeviceLinkThroughputLimit`` (USB3: the
+bandwidth limit), buffer count, frame retention, packet resend and the receive socket
+buffer.  The kernel caps a socket buffer at ``net.core.rmem_max``; when that is smaller
+than the buffer asked for (by default one frame), a warning naming ``net.core.rmem_max``
+is logged at open and kept in :attr:`AravisCamera.warnings` (``lfcal devices --check``
+prints it): a 26 MB frame burst into a 208 KiB buffer loses packets.
 
 ``gi`` is imported on first use, so ``drivers`` imports without Aravis installed; a
 missing library raises :class:`BackendUnavailable` at ``open()``.
@@ -47,11 +59,12 @@ from typing import Any
 import numpy as np
 
 from drivers.camera import (
+    SOFTWARE_TRIGGER,
     CameraContext,
     CameraInfo,
     CameraSettings,
     Frame,
-    SfncCamera,
+    TransportSettings,
     bit_depth,
     decode_mono,
     pixel_format_name,
@@ -67,6 +80,7 @@ from drivers.camera_errors import (
     IncompleteFrame,
     InvalidSetting,
 )
+from drivers.sfnc import SfncCamera
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +203,33 @@ def gvcp_read_register(ip: str, address: int, timeout_s: float = 0.5, tries: int
 def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
     """True if a GigE Vision device answers at ``ip`` (see :func:`gvcp_read_register`)."""
     return gvcp_read_register(ip, 0x0000, timeout_s, tries) is not None
+
+
+RMEM_MAX_PATH = "/proc/sys/net/core/rmem_max"
+
+
+def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
+    """The kernel's cap on a socket receive buffer (``net.core.rmem_max``), None if unknown."""
+    try:
+        with open(path, encoding="ascii") as handle:
+            return int(handle.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def socket_buffer_warning(wanted_bytes: int, rmem_max: int | None) -> str | None:
+    """The start-up warning when ``net.core.rmem_max`` caps a wanted socket buffer."""
+    if rmem_max is None or wanted_bytes <= rmem_max:
+        return None
+    return (
+        f"the GVSP socket buffer is capped at net.core.rmem_max = {rmem_max} bytes, "
+        f"{wanted_bytes} wanted: frames may lose packets; raise it with "
+        f"'sysctl -w net.core.rmem_max={wanted_bytes}' (and in /etc/sysctl.d/ to keep it)"
+    )
+
+
+USB3_INTERFACE = "USB3Vision"
+GIGE_INTERFACE = "GigEVision"
 
 
 def _local_address_for(ip: str) -> str | None:
@@ -325,10 +366,12 @@ class AravisCamera(CameraContext):
 
     Args:
         address: camera IPv4 address or host name (opened by unicast, no discovery).
-        serial: expected ``DeviceSerialNumber``; with ``address`` it is checked, alone it
-            needs ``allow_discovery``.
+        serial: expected ``DeviceSerialNumber``; with ``address`` it is checked; alone it
+            needs ``interface="usb3"`` or ``allow_discovery``.
         allow_discovery: allow Aravis device discovery (GigE Vision broadcast on every
             interface) for a serial or device name without address.  Off by default.
+        interface: ``"gige"`` or ``"usb3"`` (USB3 Vision by serial, GigE Vision disabled).
+        transport: streaming parameters; the keyword arguments below override it.
         packet_size: GVSP packet size in bytes; default 8192 on loopback, otherwise the
             size Aravis negotiates with the camera (``gv_auto_packet_size``).
         frame_retention_ms: how long Aravis waits for the missing packets of a frame
@@ -347,25 +390,49 @@ class AravisCamera(CameraContext):
         *,
         serial: str | None = None,
         allow_discovery: bool = False,
+        interface: str = "gige",
+        transport: TransportSettings | None = None,
         packet_size: int | None = None,
-        frame_retention_ms: float = 2000.0,
-        n_buffers: int = 3,
-        packet_resend: bool = True,
+        frame_retention_ms: float | None = None,
+        n_buffers: int | None = None,
+        packet_resend: bool | None = None,
     ) -> None:
+        if interface not in ("gige", "usb3"):
+            raise ValueError(f'interface must be "gige" or "usb3", not {interface!r}')
         if address is None and serial is None:
             raise ValueError("AravisCamera needs an address, a serial, or both")
-        if n_buffers < 1 or frame_retention_ms <= 0:
+        if interface == "usb3" and serial is None and address is None:
+            raise ValueError("a USB3 Vision camera is opened by serial")
+        base = transport or TransportSettings()
+        self.transport = TransportSettings(
+            packet_size=packet_size if packet_size is not None else base.packet_size,
+            packet_delay_ns=base.packet_delay_ns,
+            throughput_limit_bps=base.throughput_limit_bps,
+            buffer_count=n_buffers if n_buffers is not None else base.buffer_count,
+            socket_buffer_bytes=base.socket_buffer_bytes,
+            frame_retention_ms=(
+                frame_retention_ms if frame_retention_ms is not None else base.frame_retention_ms
+            ),
+            packet_resend=packet_resend if packet_resend is not None else base.packet_resend,
+        )
+        if self.transport.buffer_count < 1 or self.transport.frame_retention_ms <= 0:
             raise ValueError("n_buffers >= 1 and frame_retention_ms > 0")
         self.address = address
         self.serial = serial
         self.allow_discovery = allow_discovery
-        self.packet_size = packet_size
-        self.frame_retention_ms = frame_retention_ms
-        self.n_buffers = n_buffers
-        self.packet_resend = packet_resend
-        self.label = f"gige://{address}" if address else f"aravis://{serial}"
-        if address and serial:
-            self.label += f" (serial {serial})"
+        self.interface = interface
+        self.packet_size = self.transport.packet_size
+        self.frame_retention_ms = self.transport.frame_retention_ms
+        self.n_buffers = self.transport.buffer_count
+        self.packet_resend = self.transport.packet_resend
+        if interface == "usb3":
+            self.label = f"usb3://{serial or address}"
+        else:
+            self.label = f"gige://{address}" if address else f"aravis://{serial}"
+            if address and serial:
+                self.label += f" (serial {serial})"
+        #: Start-up warnings (socket buffer capped by net.core.rmem_max, transport notes).
+        self.warnings: list[str] = []
 
         self._lock = threading.RLock()
         self._device: Any = None
@@ -414,6 +481,11 @@ class AravisCamera(CameraContext):
             self._lost = False
             _drop_all(objects)
 
+    def temperature_c(self) -> float | None:
+        """``DeviceTemperature`` (°C) now; None without one (or when closed)."""
+        sfnc = self._sfnc
+        return None if sfnc is None else sfnc.temperature_c()
+
     def info(self) -> CameraInfo:
         """Identity and capabilities, read at open."""
         with self._lock:
@@ -460,7 +532,8 @@ class AravisCamera(CameraContext):
             return self._applied
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
-        """Fire one software trigger and return its frame.
+        """Return the next frame: fire one software trigger first, or (hardware trigger)
+        wait for the frame the trigger line starts.
 
         Args:
             timeout_s: seconds to wait for the frame after the trigger.
@@ -477,7 +550,9 @@ class AravisCamera(CameraContext):
             self._ensure_streaming()
             self._drain_stale()
             assert self._sfnc is not None
-            self._sfnc.nodes.execute("TriggerSoftware")
+            trigger = self._applied.trigger if self._applied else SOFTWARE_TRIGGER
+            if trigger == SOFTWARE_TRIGGER:
+                self._sfnc.nodes.execute("TriggerSoftware")
             buffer = self._pop_frame_buffer(time.monotonic() + timeout_s)
             if buffer is None:
                 if self._probe_lost():
@@ -486,7 +561,10 @@ class AravisCamera(CameraContext):
                         "the camera stopped answering while waiting for a frame", device=self.label
                     )
                 raise CameraTimeout(
-                    f"no frame within {timeout_s:g} s after the software trigger", device=self.label
+                    f"no frame within {timeout_s:g} s after the software trigger"
+                    if trigger == SOFTWARE_TRIGGER
+                    else f"no frame within {timeout_s:g} s: no pulse on trigger line {trigger}?",
+                    device=self.label,
                 )
             try:
                 return self._to_frame(buffer)
@@ -569,8 +647,16 @@ class AravisCamera(CameraContext):
         self._connect(ar)
         try:
             self._signal_id = self._device.connect("control-lost", self._on_control_lost)
+            self.warnings = []
             self._setup_transport(ar)
             self._sfnc = SfncCamera(_AravisNodes(self), self.label)
+            no_packet_size = TransportSettings(
+                packet_size=None,
+                throughput_limit_bps=self.transport.throughput_limit_bps
+                if not self._camera.is_uv_device()
+                else None,
+            )
+            self.warnings += self._sfnc.apply_transport(no_packet_size)
             if self.address and self.serial:
                 found = self._sfnc.read_string("DeviceSerialNumber") or self._sfnc.read_string(
                     "DeviceID"
@@ -596,8 +682,28 @@ class AravisCamera(CameraContext):
             raise
         self._lost = False
 
+    def _connect_usb3(self, ar: types.SimpleNamespace) -> None:
+        """Open a USB3 Vision camera by serial / device id with GigE Vision disabled."""
+        name = self.serial or self.address
+        assert name is not None
+        ar.Aravis.disable_interface(GIGE_INTERFACE)  # before anything enumerates devices
+        ar.Aravis.enable_interface(USB3_INTERFACE)
+        try:
+            self._camera = ar.Aravis.Camera.new(name)
+        except ar.GLib.Error as exc:
+            raise CameraNotFound(
+                f"no USB3 Vision camera {name!r} on this host ({exc.message})",
+                device=self.label,
+                hint="the USB cable (a USB 3 port), the camera serial (camera.serial), and "
+                "read/write access to the USB device (udev rule for the camera's vendor id)",
+            ) from None
+        self._device = self._camera.get_device()
+
     def _connect(self, ar: types.SimpleNamespace) -> None:
         """Create the ArvDevice / ArvCamera (sets ``_device`` and ``_camera``)."""
+        if self.interface == "usb3":
+            self._connect_usb3(ar)
+            return
         ip = _resolve_ipv4(self.address) if self.address else None
         if ip is None:
             name = self.address or self.serial
@@ -653,9 +759,19 @@ class AravisCamera(CameraContext):
         self._camera = ar.Aravis.Camera.new_with_device(self._device)
 
     def _setup_transport(self, ar: types.SimpleNamespace) -> None:
+        """Packet size, inter-packet delay, throughput limit (GigE and USB3 Vision)."""
+        transport = self.transport
+        if self._camera.is_uv_device():
+            if transport.throughput_limit_bps is not None:
+                with self._gerrors("DeviceLinkThroughputLimit"):
+                    if self._camera.uv_is_bandwidth_control_available():
+                        self._camera.uv_set_bandwidth(int(transport.throughput_limit_bps))
+                    else:
+                        self.warnings.append("USB3 bandwidth control not offered")
+            return
         if not isinstance(self._device, ar.Aravis.GvDevice):
             return
-        size = self.packet_size
+        size = transport.packet_size
         if size is None and self._ip is not None and ipaddress.IPv4Address(self._ip).is_loopback:
             size = LOOPBACK_PACKET_SIZE
         with self._gerrors("GevSCPSPacketSize"):
@@ -667,6 +783,9 @@ class AravisCamera(CameraContext):
                     self._camera.gv_auto_packet_size()
                 except ar.GLib.Error as exc:  # keep the camera's packet size
                     log.warning("%s: packet size negotiation failed: %s", self.label, exc.message)
+        if transport.packet_delay_ns is not None:
+            with self._gerrors("GevSCPD"):
+                self._camera.gv_set_packet_delay(int(transport.packet_delay_ns))
 
     def _on_control_lost(self, *_args: object) -> None:
         """Aravis heartbeat thread: the camera no longer lists us as controller."""
@@ -691,9 +810,7 @@ class AravisCamera(CameraContext):
                     self._stream.set_property(
                         "frame-retention", int(self.frame_retention_ms * 1000)
                     )
-                    # receive buffer sized to a frame (capped by net.core.rmem_max): the
-                    # default 208 KiB overflows on a 50 MB frame burst
-                    self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.AUTO)
+                    self._setup_socket_buffer(ar, payload)
                     self._stream.set_property(
                         "packet-resend",
                         ar.GvStreamPacketResend.ALWAYS
@@ -706,6 +823,21 @@ class AravisCamera(CameraContext):
         with self._gerrors("AcquisitionStart"):
             self._camera.start_acquisition()
         self._streaming = True
+
+    def _setup_socket_buffer(self, ar: types.SimpleNamespace, payload: int) -> None:
+        """Receive buffer of the GVSP socket: as configured, else one frame (AUTO); the
+        default 208 KiB overflows on a 26-52 MB frame burst.  Warns when the kernel's
+        ``net.core.rmem_max`` caps it."""
+        wanted = self.transport.socket_buffer_bytes
+        if wanted is None:
+            self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.AUTO)
+        else:
+            self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
+            self._stream.set_property("socket-buffer-size", int(wanted))
+        warning = socket_buffer_warning(wanted or payload, rmem_max_bytes())
+        if warning is not None and warning not in self.warnings:
+            log.warning("%s: %s", self.label, warning)
+            self.warnings.append(warning)
 
     def _stop_streaming(self) -> None:
         if self._streaming:
@@ -815,7 +947,7 @@ class AravisCamera(CameraContext):
             raise CameraError(
                 f"frame {frame_id} is {pixel_format}, which the drivers do not decode",
                 device=self.label,
-                hint="configure a Mono8/10/12/14/16 pixel format",
+                hint="configure a Mono8/10/12/14/16 or Mono10p/12p/12Packed pixel format",
             ) from None
         pixels = decode_mono(
             _image_array(buffer),
@@ -827,6 +959,7 @@ class AravisCamera(CameraContext):
             copy=False,
         )
         applied = self._applied
+        info = self._info
         return Frame(
             pixels=pixels,
             frame_id=frame_id,
@@ -841,6 +974,11 @@ class AravisCamera(CameraContext):
             offset_y=int(buffer.get_image_y()),
             bit_depth=depth,
             device=self.label,
+            gain_feature=info.gain_feature if info else None,
+            black_level=applied.black_level if applied else None,
+            temperature_c=self._sfnc.temperature_c() if self._sfnc else None,
+            trigger=applied.trigger if applied else SOFTWARE_TRIGGER,
+            flat_field=applied.flat_field if applied else None,
         )
 
 

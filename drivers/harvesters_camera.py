@@ -32,11 +32,12 @@ from typing import Any
 import numpy as np
 
 from drivers.camera import (
+    SOFTWARE_TRIGGER,
     CameraContext,
     CameraInfo,
     CameraSettings,
     Frame,
-    SfncCamera,
+    TransportSettings,
     bit_depth,
     decode_mono,
 )
@@ -52,6 +53,8 @@ from drivers.camera_errors import (
     InvalidSetting,
     ProducerLoadError,
 )
+from drivers.pixels import mono_format
+from drivers.sfnc import SfncCamera
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +196,10 @@ class HarvestersCamera(CameraContext):
         cti: path of the GenTL producer file (.cti).
         serial: serial number of the camera in the producer's device list.
         device_id: device id in the producer's list (used when no serial is given).
-        n_buffers: buffers announced to the producer.
+        n_buffers: buffers announced to the producer (default: ``transport.buffer_count``).
+        transport: streaming parameters: buffer count, and the GenICam transport features
+            the camera offers (``GevSCPSPacketSize``, ``DeviceLinkThroughputLimit``); the
+            socket buffer and packet timing belong to the producer's own configuration.
 
     Implements :class:`drivers.camera.Camera`.
     """
@@ -206,14 +212,19 @@ class HarvestersCamera(CameraContext):
         *,
         serial: str | None = None,
         device_id: str | None = None,
-        n_buffers: int = 3,
+        n_buffers: int | None = None,
+        transport: TransportSettings | None = None,
     ) -> None:
+        self.transport = transport or TransportSettings()
+        n_buffers = self.transport.buffer_count if n_buffers is None else n_buffers
         if n_buffers < 1:
             raise ValueError("n_buffers >= 1")
         self.cti = Path(cti)
         self.serial = serial
         self.device_id = device_id
         self.n_buffers = n_buffers
+        #: Start-up notes on transport settings the camera does not offer.
+        self.warnings: list[str] = []
         which = serial or device_id
         self.label = f"gentl://{self.cti}" + (f"#{which}" if which else "")
         self._lock = threading.RLock()
@@ -245,6 +256,11 @@ class HarvestersCamera(CameraContext):
         with self._lock:
             self._release()
             self._lost = False
+
+    def temperature_c(self) -> float | None:
+        """``DeviceTemperature`` (°C) now; None without one (or when closed)."""
+        sfnc = self._sfnc
+        return None if sfnc is None else sfnc.temperature_c()
 
     def info(self) -> CameraInfo:
         """Identity and capabilities, read at open."""
@@ -287,7 +303,8 @@ class HarvestersCamera(CameraContext):
             return self._applied
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
-        """Fire one software trigger and return its frame within ``timeout_s`` seconds.
+        """Return the next frame within ``timeout_s`` s: fire one software trigger first,
+        or (hardware trigger) wait for the frame the trigger line starts.
 
         Raises ``CameraTimeout``, ``IncompleteFrame`` or ``CameraLost`` (the next grab
         then reopens the camera once).
@@ -299,7 +316,9 @@ class HarvestersCamera(CameraContext):
             self._start()
             self._drain_stale()
             incomplete_before = self._incomplete
-            sfnc.nodes.execute("TriggerSoftware")
+            trigger = self._applied.trigger if self._applied else SOFTWARE_TRIGGER
+            if trigger == SOFTWARE_TRIGGER:
+                sfnc.nodes.execute("TriggerSoftware")
             deadline = time.monotonic() + timeout_s
             buffer = None
             while buffer is None and self._incomplete == incomplete_before:
@@ -316,7 +335,10 @@ class HarvestersCamera(CameraContext):
                         device=self.label,
                     )
                 raise CameraTimeout(
-                    f"no frame within {timeout_s:g} s after the software trigger", device=self.label
+                    f"no frame within {timeout_s:g} s after the software trigger"
+                    if trigger == SOFTWARE_TRIGGER
+                    else f"no frame within {timeout_s:g} s: no pulse on trigger line {trigger}?",
+                    device=self.label,
                 )
             try:
                 return self._to_frame(buffer)
@@ -448,6 +470,7 @@ class HarvestersCamera(CameraContext):
             self._sfnc = SfncCamera(
                 _HarvestersNodes(self), self.label, feature_hint="the camera's GenICam features"
             )
+            self.warnings = self._sfnc.apply_transport(self.transport)
             self._sfnc.setup_software_trigger()
             self._info = self._sfnc.read_info(backend=self.backend)
             if self._requested is not None:
@@ -553,7 +576,7 @@ class HarvestersCamera(CameraContext):
             raise CameraError(
                 f"frame {frame_id} is {pixel_format}, which the drivers do not decode",
                 device=self.label,
-                hint="configure a Mono8/10/12/14/16 pixel format",
+                hint="configure a Mono8/10/12/14/16 or Mono10p/12p/12Packed pixel format",
             ) from None
         width, height = int(component.width), int(component.height)
         applied = self._applied
@@ -564,8 +587,17 @@ class HarvestersCamera(CameraContext):
                 applied.pixel_format,
                 pixel_format,
             )
+        if mono_format(pixel_format).packed:
+            # our own unpacking of the bytes on the wire (harvesters' expansion of the same
+            # buffer is the reference it is tested against)
+            with self._gerrors("buffer"):
+                data = np.frombuffer(
+                    component._buffer.raw_buffer, dtype=np.uint8, offset=component.data_offset
+                )
+        else:
+            data = np.asarray(component.data)
         pixels = decode_mono(
-            np.asarray(component.data),
+            data,
             width=width,
             height=height,
             pixel_format=pixel_format,
@@ -586,6 +618,11 @@ class HarvestersCamera(CameraContext):
             offset_y=int(component.y_offset),
             bit_depth=depth,
             device=self.label,
+            gain_feature=self._info.gain_feature if self._info else None,
+            black_level=applied.black_level if applied else None,
+            temperature_c=self._sfnc.temperature_c() if self._sfnc else None,
+            trigger=applied.trigger if applied else SOFTWARE_TRIGGER,
+            flat_field=applied.flat_field if applied else None,
         )
 
 

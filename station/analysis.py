@@ -8,10 +8,15 @@ it pickles to a few kB and is cached in each worker per job), submits each
 frame **by file name** as soon as it is in the archive -- the worker reads the
 PNG itself, so no frame crosses the process boundary -- and gets a
 :class:`calibration.pipeline.FrameSummary` back through a callback. At the end
-:meth:`AnalysisSession.wait` returns every summary; a worker that died (or a
-frame that failed) is analysed again in the calling process, so a result is
-never silently missing a frame, and :meth:`AnalysisSession.combine` runs the final
-calibration in a worker too.
+:meth:`AnalysisSession.wait` returns every summary, and
+:meth:`AnalysisSession.combine` runs the final calibration in a worker too.
+
+A worker process that dies (killed, out of memory) breaks the executor: the
+pool notices at once (the frame's future fails with ``BrokenProcessPool``),
+starts a new executor and submits the frames that were in flight again, once;
+what still fails is analysed in the calling process by ``wait``. So a result
+is never silently missing a frame. :meth:`AnalysisPool.health` reports the
+restarts and the last fault.
 
 Workers run at a lower CPU priority (:func:`lower_cpu_priority`): on a busy
 machine, the hardware thread and the HTTP server come first.
@@ -113,6 +118,11 @@ def _analyzer_for(key: str, blob: bytes) -> FrameAnalyzer:
     return analyzer
 
 
+def _fit_remote(geometry: SweepGeometry, white: Any) -> FrameAnalyzer:
+    """Worker: the MLA grid fit on the white image (:meth:`FrameAnalyzer.from_white`)."""
+    return FrameAnalyzer.from_white(geometry, white)
+
+
 def _combine_remote(
     key: str, blob: bytes, summaries: list[FrameSummary], geometry: SweepGeometry
 ) -> tuple[str, Any]:
@@ -137,6 +147,7 @@ _FLOAT_FIELDS = (
     "Ls_px",
     "Lr_px",
     "edge_width_px",
+    "edge_spread_px",
 )
 
 
@@ -169,6 +180,9 @@ class AnalysisPool:
         self.workers = workers or default_workers()
         self._lock = threading.Lock()
         self._executor: ProcessPoolExecutor | None = None
+        self.restarts = 0
+        self.last_fault: str | None = None
+        self._broken_at: float | None = None
 
     def executor(self) -> ProcessPoolExecutor:
         """The executor, started (and warmed up in the background) on first use."""
@@ -186,12 +200,35 @@ class AnalysisPool:
         """Start the processes now (they import the calibration core meanwhile)."""
         self.executor()
 
-    def reset(self) -> None:
-        """Drop a broken executor; the next use starts a new one."""
+    def reset(self, broken: ProcessPoolExecutor | None = None, why: str = "") -> None:
+        """Drop a broken executor (only ``broken``, if given: not a newer one);
+        the next use starts a new one."""
         with self._lock:
-            executor, self._executor = self._executor, None
-        if executor is not None:
-            executor.shutdown(wait=False, cancel_futures=True)
+            executor = self._executor
+            if executor is None or (broken is not None and executor is not broken):
+                return
+            self._executor = None
+            self.restarts += 1
+            self.last_fault = why or "an analysis worker process died"
+            self._broken_at = time.time()
+        executor.shutdown(wait=False, cancel_futures=True)
+
+    def health(self) -> dict[str, Any]:
+        """``state`` (``ok``; ``down`` while a broken executor is not replaced yet),
+        ``workers``, ``restarts``, ``last_fault``, ``pids`` of the live workers."""
+        with self._lock:
+            executor = self._executor
+            broken = executor is not None and bool(getattr(executor, "_broken", False))
+            processes = dict(getattr(executor, "_processes", None) or {})
+            out: dict[str, Any] = {
+                "state": "down" if broken else "ok",
+                "workers": self.workers,
+                "restarts": self.restarts,
+                "last_fault": self.last_fault,
+                "last_fault_at": self._broken_at,
+            }
+        out["pids"] = sorted(int(pid) for pid, proc in processes.items() if proc.is_alive())
+        return out
 
     def close(self) -> None:
         """Stop the processes (pending work is cancelled)."""
@@ -199,6 +236,17 @@ class AnalysisPool:
             executor, self._executor = self._executor, None
         if executor is not None:
             executor.shutdown(wait=True, cancel_futures=True)
+
+    def fit_analyzer(self, geometry: SweepGeometry, white: Any) -> FrameAnalyzer:
+        """:meth:`FrameAnalyzer.from_white` in a worker process: seconds of Python-level
+        work that would otherwise hold the station process's GIL while the HTTP server
+        answers pollers. Falls back to this process if the pool is unavailable; raises
+        ``ValueError`` as ``from_white`` does."""
+        try:
+            return self.executor().submit(_fit_remote, geometry, white).result()
+        except (BrokenProcessPool, RuntimeError) as exc:
+            self.reset(None, f"the MLA grid fit's worker process failed ({exc})")
+            return FrameAnalyzer.from_white(geometry, white)
 
     def session(
         self,
@@ -235,6 +283,9 @@ class AnalysisSession:
         self._lock = threading.Lock()
         self._done: dict[int, FrameSummary] = {}
         self._pending: dict[int, tuple[Future[FrameSummary], float, str]] = {}
+        self._retried: set[int] = set()
+        self._resubmitting = 0
+        self._cancelled = False
         self._all_done = threading.Condition(self._lock)
 
     @property
@@ -249,8 +300,10 @@ class AnalysisSession:
 
     def submit(self, index: int, rail_mm: float, path: Path) -> None:
         """Analyse frame ``index`` (file ``path``, rail position ``rail_mm`` mm) in a worker."""
+        executor = None
         try:
-            future = self._pool.executor().submit(
+            executor = self._pool.executor()
+            future = executor.submit(
                 _analyze_file,
                 self._key,
                 self._blob,
@@ -260,19 +313,41 @@ class AnalysisSession:
                 self._shape,
                 self._bit_depth,
             )
-        except (BrokenProcessPool, RuntimeError):
-            self._pool.reset()
+        except (BrokenProcessPool, RuntimeError) as exc:
+            self._pool.reset(executor, f"an analysis worker process died ({exc})")
             future = Future()
             future.set_exception(BrokenProcessPool("analysis pool unavailable"))
         with self._lock:
             self._pending[index] = (future, rail_mm, str(path))
-        future.add_done_callback(functools.partial(self._finished, index))
+        future.add_done_callback(functools.partial(self._finished, index, executor))
 
-    def _finished(self, index: int, future: Future[FrameSummary]) -> None:
+    def _finished(
+        self, index: int, executor: ProcessPoolExecutor | None, future: Future[FrameSummary]
+    ) -> None:
         if future.cancelled() or future.exception() is not None:
+            error = None if future.cancelled() else future.exception()
+            retry = False
             with self._lock:
+                if (
+                    isinstance(error, BrokenProcessPool)
+                    and not self._cancelled
+                    and index not in self._retried
+                    and index not in self._done
+                ):
+                    self._retried.add(index)
+                    self._resubmitting += 1
+                    retry = True
+                    _, rail_mm, path = self._pending[index]
                 self._all_done.notify_all()
-            return  # analysed again in wait()
+            if retry:  # a worker died: a new executor, the frame submitted once more
+                self._pool.reset(executor, f"an analysis worker process died ({error})")
+                threading.Thread(
+                    target=self._resubmit,
+                    args=(index, rail_mm, Path(path)),
+                    name=f"analysis-resubmit-{index}",
+                    daemon=True,
+                ).start()
+            return  # else analysed again in wait()
         summary = future.result()
         with self._lock:
             if index in self._done:
@@ -282,6 +357,14 @@ class AnalysisSession:
             self._all_done.notify_all()
         if self._on_summary is not None:
             self._on_summary(summary)
+
+    def _resubmit(self, index: int, rail_mm: float, path: Path) -> None:
+        try:
+            self.submit(index, rail_mm, path)
+        finally:
+            with self._lock:
+                self._resubmitting -= 1
+                self._all_done.notify_all()
 
     def done_count(self) -> int:
         """Frames analysed so far."""
@@ -296,7 +379,7 @@ class AnalysisSession:
         """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._lock:
-            while any(not f.done() for f, _, _ in self._pending.values()):
+            while self._resubmitting or any(not f.done() for f, _, _ in self._pending.values()):
                 left = 1.0 if deadline is None else deadline - time.monotonic()
                 if left <= 0:
                     break
@@ -314,8 +397,6 @@ class AnalysisSession:
             if future.done() and not future.cancelled() and error is None:
                 summary = future.result()
             else:
-                if isinstance(error, BrokenProcessPool):
-                    self._pool.reset()
                 summary = self._local(index, rail_mm, path)
             with self._lock:
                 if index in self._done:
@@ -353,8 +434,8 @@ class AnalysisSession:
                 _combine_remote, self._key, self._blob, summaries, geometry
             )
             status, payload = future.result()
-        except (BrokenProcessPool, RuntimeError):  # pool broken or shut down, worker died
-            self._pool.reset()
+        except (BrokenProcessPool, RuntimeError) as exc:  # pool broken or shut down
+            self._pool.reset(None, f"the final calibration's worker process failed ({exc})")
             return combine(summaries, geometry, self._analyzer.grid).to_dict()
         if status == "ok":
             return dict(payload)
@@ -364,6 +445,7 @@ class AnalysisSession:
     def cancel(self) -> None:
         """Cancel the frames not started yet (the job stops without a result)."""
         with self._lock:
+            self._cancelled = True
             futures = [f for f, _, _ in self._pending.values()]
         for f in futures:
             f.cancel()

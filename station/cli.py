@@ -24,6 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from station.summary_table import summary_table
+
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_BAD_INPUT = 2
@@ -103,6 +105,33 @@ def _override_optics(preset: Any, args: argparse.Namespace) -> Any:
     return replace(preset, camera=camera)
 
 
+def _datasheet(args: argparse.Namespace) -> Any:
+    """The ``--datasheet-*`` options: values the manifest states instead of the true ones."""
+    from calibration.sim_sweep import DataSheet
+
+    tolerances: tuple[float | None, ...] = (None, None, None)
+    if args.datasheet_tolerances:
+        parts = args.datasheet_tolerances.split(",")
+        try:
+            tolerances = tuple(float(p) for p in parts)
+        except ValueError:
+            tolerances = ()
+        if len(tolerances) != 3 or not all(t is not None and t > 0 for t in tolerances):
+            raise UserError(
+                "--datasheet-tolerances must be three positive numbers F_MM,f_MM,RAIL_MM, "
+                f"got {args.datasheet_tolerances!r}"
+            )
+    sheet = DataSheet(
+        main_focal_mm=args.datasheet_main_focal_mm,
+        mla_focal_mm=args.datasheet_mla_focal_mm,
+        rail_zero_mm=args.datasheet_rail_zero_mm,
+        main_focal_tolerance_mm=tolerances[0],
+        mla_focal_tolerance_mm=tolerances[1],
+        rail_zero_tolerance_mm=tolerances[2],
+    )
+    return None if sheet == DataSheet() else sheet
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from calibration.presets import get_preset, with_sweep
     from calibration.sim_sweep import fit_frame, write_sweep
@@ -140,7 +169,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         path = write_sweep(
-            out, preset, seed=args.seed, overwrite=args.overwrite, progress=_progress("simulate")
+            out,
+            preset,
+            seed=args.seed,
+            overwrite=args.overwrite,
+            progress=_progress("simulate"),
+            datasheet=_datasheet(args),
         )
     except PermissionError as exc:
         raise UserError(f"cannot write {out}: permission denied ({exc.filename})") from None
@@ -158,96 +192,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- calibrate
 
 
-def _fmt(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, float):
-        return f"{value:.{digits}f}"
-    return str(value)
-
-
-def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -> str:
-    """A readable table of the calibrated parameters (and errors against a simulator truth)."""
-    unc = result.get("uncertainty", {})
-    focus = result.get("focus", {})
-    mla = result.get("mla", {})
-    rows: list[tuple[str, str, str, str]] = [
-        ("a (mm)", _fmt(result.get("a_mm"), 5), _fmt(unc.get("a_mm"), 5), "a_mm"),
-        ("b (mm)", _fmt(result.get("b_mm"), 5), _fmt(unc.get("b_mm"), 5), "b_mm"),
-        ("Q = b/a", _fmt(result.get("Q"), 6), _fmt(unc.get("Q"), 6), "Q"),
-        (
-            "patch size p (px)",
-            _fmt(result.get("patch_size_px")),
-            _fmt(unc.get("patch_size_px")),
-            "patch_size_px",
-        ),
-        (
-            "focus plane u (mm)",
-            _fmt(focus.get("object_distance_mm"), 2),
-            _fmt(focus.get("uncertainty_mm"), 2),
-            "focus.object_distance_mm",
-        ),
-        (
-            "focus rail position (mm)",
-            _fmt(focus.get("rail_mm"), 2),
-            _fmt(focus.get("uncertainty_mm"), 2),
-            "focus.rail_mm",
-        ),
-        ("lens pitch (px)", _fmt(mla.get("lens_pitch_px")), "", "mla.lens_pitch_px"),
-        ("micro-image pitch (px)", _fmt(mla.get("image_pitch_px")), "", "mla.image_pitch_px"),
-        ("MLA rotation (deg)", _fmt(mla.get("rotation_deg")), "", "mla.rotation_deg"),
-    ]
-    header = ["quantity", "value", "± 1σ"]
-    truth_vals: dict[str, Any] = {}
-    if truth:
-        header += ["truth", "error"]
-        truth_vals = {
-            "a_mm": truth.get("a_mm"),
-            "b_mm": truth.get("b_mm"),
-            "Q": truth.get("Q"),
-            "patch_size_px": truth.get("patch_size_px"),
-            "focus.object_distance_mm": truth.get("focus", {}).get("object_distance_mm"),
-            "focus.rail_mm": truth.get("focus", {}).get("rail_mm"),
-            "mla.lens_pitch_px": truth.get("mla", {}).get("lens_pitch_px"),
-            "mla.image_pitch_px": truth.get("mla", {}).get("image_pitch_px"),
-            "mla.rotation_deg": truth.get("mla", {}).get("rotation_deg"),
-        }
-    lines = []
-    table = []
-    for name, value, se, key in rows:
-        row = [name, value, se]
-        if truth:
-            t = truth_vals.get(key)
-            row.append(_fmt(t, 4) if isinstance(t, float | int) else "")
-            if isinstance(t, float | int) and value not in ("", "n/a"):
-                err = float(value) - float(t)
-                rel = f" ({100 * err / float(t):+.3f} %)" if key in ("a_mm", "b_mm", "Q") else ""
-                row.append(f"{err:+.4f}{rel}")
-            else:
-                row.append("")
-        table.append(row)
-    widths = [max(len(r[i]) for r in [header, *table]) for i in range(len(header))]
-    lines.append("  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)))
-    lines.append("  ".join("-" * w for w in widths))
-    for row in table:
-        lines.append("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
-    found = result.get("corners_found", {})
-    lines.append(
-        f"corners found: standard in {found.get('standard_frames')} and reference in "
-        f"{found.get('reference_frames')} of {found.get('frames')} frames"
-    )
-    cons = result.get("consistency")
-    if cons:
-        lines.append(
-            f"consistency with the global fit: b differs by {cons['b_difference_mm']:+.5f} mm "
-            f"({cons['b_sigma']:.1f} σ), a by {cons['a_difference_mm']:+.4f} mm "
-            f"({cons['a_sigma']:.1f} σ)"
-        )
-    for w in result.get("warnings", []):
-        lines.append(f"warning: {w}")
-    return "\n".join(lines)
-
-
 def _write_json(path: Path, data: dict[str, Any]) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -258,11 +202,27 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
         raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+def _archive_location(location: str, cache_dir: str | None) -> Path:
+    """A local directory for ``location``: the path itself, or an ``s3://`` archive
+    downloaded (checked against its SHA-256) into the cache (endpoint and keys from
+    the usual AWS environment variables)."""
+    from station.archive_source import is_remote, local_archive
+    from station.store import StoreError
+
+    if not is_remote(location):
+        return Path(location)
+    cache = Path(cache_dir) if cache_dir else Path.home() / ".cache" / "lfcal" / "archives"
+    try:
+        return local_archive(location, cache)
+    except (StoreError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from calibration.archive import ArchiveError
     from calibration.pipeline import CalibrationError, calibrate_archive
 
-    sweep = Path(args.sweep_dir)
+    sweep = _archive_location(args.sweep_dir, args.cache_dir)
     if not sweep.exists():
         raise UserError(f"{sweep}: no such sweep directory")
     out = Path(args.out) if args.out else None
@@ -308,7 +268,7 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 def cmd_devices(args: argparse.Namespace) -> int:
     from station.devices_cli import devices_main
 
-    return devices_main(args.config, home=args.home)
+    return devices_main(args.config, home=args.home, check=args.check)
 
 
 def cmd_sweep(args: argparse.Namespace, rest: list[str]) -> int:
@@ -321,6 +281,12 @@ def cmd_jobs(args: argparse.Namespace, rest: list[str]) -> int:
     from station.jobs_cli import jobs_main
 
     return jobs_main(rest)
+
+
+def cmd_recalibrate(args: argparse.Namespace, rest: list[str]) -> int:
+    from station.recalibrate import recalibrate_main
+
+    return recalibrate_main(rest)
 
 
 def cmd_serve(args: argparse.Namespace, rest: list[str]) -> int:
@@ -564,11 +530,39 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="object distance of the focus plane (mm); sets L",
     )
+    p.add_argument(
+        "--datasheet-main-focal-mm",
+        type=float,
+        default=None,
+        help="F the manifest states (the render uses the true F)",
+    )
+    p.add_argument(
+        "--datasheet-mla-focal-mm", type=float, default=None, help="f the manifest states"
+    )
+    p.add_argument(
+        "--datasheet-rail-zero-mm",
+        type=float,
+        default=None,
+        help="rail zero object distance the manifest states",
+    )
+    p.add_argument(
+        "--datasheet-tolerances",
+        default=None,
+        metavar="F,f,RAIL",
+        help="1-sigma tolerances (mm) the manifest states for F, f and the rail zero",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing archive")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("calibrate", help="calibrate a sweep archive (ESIF)")
-    p.add_argument("sweep_dir", help="an lfcal-sweep/1 directory")
+    p.add_argument(
+        "sweep_dir", help="an lfcal-sweep/1 directory, or its s3://bucket/prefix/... URL"
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="where an archive from object storage is kept (default ~/.cache/lfcal/archives)",
+    )
     p.add_argument("--out", default=None, help="write the result JSON here")
     p.add_argument("--plots", default=None, help="write La(u) and Q(u) PNG plots to this directory")
     p.set_defaults(func=cmd_calibrate)
@@ -586,6 +580,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub.add_parser("jobs", add_help=False, help="list stored jobs (lfcal jobs --help)")
     sub.add_parser(
+        "recalibrate",
+        add_help=False,
+        help="calibrate stored archives again on a Dask cluster (lfcal recalibrate --help)",
+    )
+    sub.add_parser(
         "serve",
         add_help=False,
         help="start the HTTP service and operator page (lfcal serve --help)",
@@ -594,6 +593,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("devices", help="connect to every configured device and describe it")
     p.add_argument("--config", default="config/simulated.toml", help="station configuration")
     p.add_argument("--home", action="store_true", help="home the stages first (moves them)")
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="bring-up report: PASS/FAIL per check, a test grab, a short move of each axis "
+        "(homes and moves the stages); exit 2 on any FAIL",
+    )
     p.set_defaults(func=cmd_devices)
 
     p = sub.add_parser(
@@ -629,6 +634,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--verbose", action="store_true", help="show the server's log")
     p.set_defaults(func=cmd_demo)
+
+    from station.lab_cli import add_lab_commands  # render, export, report
+
+    add_lab_commands(sub)
     return parser
 
 
@@ -639,6 +648,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "emulate-stage": cmd_emulate_stage,
         "sweep": cmd_sweep,
         "jobs": cmd_jobs,
+        "recalibrate": cmd_recalibrate,
         "serve": cmd_serve,
     }
     if argv and argv[0] in passthrough:

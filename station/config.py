@@ -9,7 +9,8 @@ Sections (every key is optional unless marked *required*)::
     [optics]         priors F, f, D, δ (and optional designed b, a for comparison)
     [board]          square size s and reference gap Cr
     [sweep]          default sweep (start/stop/step on the rail, frame limit)
-    [storage]        data directory and SQLite database
+    [storage]        data directory, job database (SQLite file or PostgreSQL URL),
+                     station id, object storage of the archives ([storage.s3])
     [server]         HTTP service (host, port, API keys, CORS, body limit)
 
 Emulated hardware: ``driver = "emulated"`` (rail and/or XY stage) makes the
@@ -38,7 +39,7 @@ import sys
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple, TextIO
 
 from pydantic import (
     BaseModel,
@@ -59,8 +60,28 @@ MIN_API_KEY_LENGTH = 16
 GMAX0505_SIZE_PX = 5120
 """Sensor width and height (px) of the GMAX0505, the default for real cameras."""
 
-PixelFormat = Literal["Mono8", "Mono12", "Mono16"]
-PIXEL_FORMAT_BITS: dict[str, int] = {"Mono8": 8, "Mono12": 12, "Mono16": 16}
+PixelFormat = Literal[
+    "Mono8",
+    "Mono10",
+    "Mono12",
+    "Mono14",
+    "Mono16",
+    "Mono10p",
+    "Mono12p",
+    "Mono10Packed",
+    "Mono12Packed",
+]
+PIXEL_FORMAT_BITS: dict[str, int] = {
+    "Mono8": 8,
+    "Mono10": 10,
+    "Mono12": 12,
+    "Mono14": 14,
+    "Mono16": 16,
+    "Mono10p": 10,
+    "Mono12p": 12,
+    "Mono10Packed": 10,
+    "Mono12Packed": 12,
+}
 ZABER_BAUD_RATES = (9600, 19200, 38400, 57600, 115200)
 _PYSERIAL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
 
@@ -97,12 +118,47 @@ class RoiConfig(_Model):
     offset_y: int = Field(default=0, ge=0, description="top edge of the ROI on the sensor (px)")
 
 
+class TransportConfig(_Model):
+    """``[camera.transport]``: streaming of 25-52 MB frames (GigE Vision / USB3 Vision)."""
+
+    packet_size: int | None = Field(
+        default=None,
+        ge=576,
+        le=16384,
+        description="GigE stream packet size (bytes; 9000 with jumbo frames); none: negotiated",
+    )
+    packet_delay_ns: int | None = Field(
+        default=None, ge=0, le=10_000_000, description="GigE inter-packet delay GevSCPD (ns)"
+    )
+    throughput_limit_bps: int | None = Field(
+        default=None,
+        gt=0,
+        description="DeviceLinkThroughputLimit (bytes/s); USB3 through Aravis: bandwidth limit",
+    )
+    buffer_count: int = Field(default=3, ge=1, le=64, description="stream buffers")
+    socket_buffer_bytes: int | None = Field(
+        default=None,
+        gt=0,
+        description="aravis GigE: receive socket buffer (bytes); none: one frame; "
+        "capped by net.core.rmem_max (a warning at start-up says so)",
+    )
+    frame_retention_ms: float = Field(
+        default=2000.0, gt=0, le=60000, description="aravis: wait for missing packets (ms)"
+    )
+    packet_resend: bool = Field(default=True, description="ask the camera to resend lost packets")
+
+
 class CameraConfig(_Model):
     """``[camera]``: which camera and how it is exposed."""
 
     backend: Literal["simulated", "aravis", "harvesters"] = Field(
         default="simulated",
         description="simulated renderer, Aravis (GigE/USB3 Vision) or Harvesters",
+    )
+    interface: Literal["gige", "usb3"] = Field(
+        default="gige",
+        description='aravis: "gige" (opened by address) or "usb3" (USB3 Vision by serial, '
+        "with GigE Vision discovery disabled)",
     )
     address: str | None = Field(
         default=None,
@@ -115,10 +171,45 @@ class CameraConfig(_Model):
         description="harvesters: GenTL producer file (.cti), relative to the config file",
     )
     pixel_format: PixelFormat = Field(
-        default="Mono12", description="GenICam PixelFormat; sets the bit depth (8, 12 or 16 bits)"
+        default="Mono12",
+        description="GenICam PixelFormat (Mono8/10/12/14/16, packed Mono10p, Mono12p, "
+        "Mono10Packed, Mono12Packed); sets the bit depth",
     )
     exposure_us: float = Field(default=10000.0, gt=0, le=60e6, description="exposure time (µs)")
-    gain: float = Field(default=0.0, ge=0, le=48, description="analogue gain (dB)")
+    gain: float = Field(
+        default=0.0,
+        ge=0,
+        le=100000,
+        description="analogue gain: dB (SFNC Gain); device units on a GainRaw-only camera",
+    )
+    black_level: float | None = Field(
+        default=None, description="BlackLevel (or BlackLevelRaw); none: leave the camera's"
+    )
+    trigger: str = Field(
+        default="software",
+        min_length=1,
+        pattern=r"^(software|[A-Za-z][A-Za-z0-9_]*)$",
+        description='"software" (one TriggerSoftware per frame) or a TriggerSource line '
+        '("Line1") that starts each frame',
+    )
+    trigger_activation: str | None = Field(
+        default=None,
+        min_length=1,
+        description='line trigger: TriggerActivation ("RisingEdge"); none: the camera\'s',
+    )
+    flat_field: Literal["off", "leave"] = Field(
+        default="off",
+        description='on-camera flat-field correction: "off" (switched off; the white image '
+        'must be raw) or "leave" (left as it is, recorded per frame)',
+    )
+    transport: TransportConfig = Field(
+        default_factory=TransportConfig, description="streaming parameters"
+    )
+    frame_cache: LoosePath | None = Field(
+        default=None,
+        description="simulated: keep rendered frames in this directory (relative to the "
+        "config file) and reuse them for the same bench state",
+    )
     roi: RoiConfig | None = Field(
         default=None, description="region of interest (px); none: full sensor"
     )
@@ -142,7 +233,7 @@ class CameraConfig(_Model):
     )
     seed: int = Field(default=0, ge=0, description="simulated: noise seed")
 
-    @field_validator("cti", mode="after")
+    @field_validator("cti", "frame_cache", mode="after")
     @classmethod
     def _resolve_cti(cls, value: Path | None, info: ValidationInfo) -> Path | None:
         return _resolve_path(value, info)
@@ -256,6 +347,14 @@ class RailConfig(_ZaberLink):
     direction: Literal[1, -1] = Field(
         default=1, description="+1: rail position increases away from the camera; -1: towards it"
     )
+    zero_object_distance_tolerance_mm: float | None = Field(
+        default=None,
+        gt=0,
+        description=(
+            "how well zero_object_distance_mm is known, 1 sigma (mm); the calibration measures "
+            "it from the sweep and uses this only where the sweep cannot (default 2 mm)"
+        ),
+    )
 
     def object_distance_mm(self, rail_mm: float) -> float:
         """Object distance u (mm) at rail position ``rail_mm`` (mm)."""
@@ -311,6 +410,22 @@ class OpticsConfig(_Model):
     main_focal_mm: float = Field(default=35.0, gt=0, description="main-lens focal length F (mm)")
     mla_focal_mm: float = Field(default=2.5, gt=0, description="microlens focal length f (mm)")
     mla_pitch_mm: float = Field(default=0.25, gt=0, description="microlens pitch D (mm)")
+    main_focal_tolerance_mm: float | None = Field(
+        default=None,
+        gt=0,
+        description=(
+            "how well main_focal_mm is known, 1 sigma (mm); the calibration measures F from "
+            "the sweep and uses this only where the sweep cannot (default 2 % of F)"
+        ),
+    )
+    mla_focal_tolerance_mm: float | None = Field(
+        default=None,
+        gt=0,
+        description=(
+            "how well mla_focal_mm is known, 1 sigma (mm); the calibration measures f from "
+            "the sweep and uses this only where the sweep cannot (default 2 % of f)"
+        ),
+    )
     pixel_pitch_mm: float = Field(default=0.0025, gt=0, description="sensor pixel pitch δ (mm)")
     designed_b_mm: float | None = Field(
         default=None, gt=0, description="designed MLA-to-sensor distance b (mm), for comparison"
@@ -363,20 +478,101 @@ class SweepConfig(_Model):
 # ----------------------------------------------------------------- storage, server
 
 
+STATION_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+_POSTGRES_SCHEMES = ("postgresql://", "postgres://", "postgresql+psycopg://")
+
+
+class S3Config(_Model):
+    """``[storage.s3]``: the S3-compatible object store of ``archive_url``. Keys left out
+    come from the usual AWS environment variables and files (``AWS_ENDPOINT_URL``,
+    ``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_DEFAULT_REGION``,
+    ``AWS_PROFILE``, ``~/.aws/credentials``)."""
+
+    endpoint_url: str | None = Field(
+        default=None,
+        pattern=r"^https?://[^\s/]+(/.*)?$",
+        description="endpoint of a non-AWS server, e.g. http://minio.lab:9000",
+    )
+    region: str | None = Field(default=None, min_length=1, description="region name")
+    access_key_id: str | None = Field(default=None, min_length=1, repr=False)
+    secret_access_key: str | None = Field(default=None, min_length=1, repr=False)
+    connect_timeout_s: float = Field(default=5.0, gt=0, le=120, description="per attempt (s)")
+    upload_retry_s: float = Field(
+        default=2.0, gt=0, le=600, description="wait between upload attempts during an outage (s)"
+    )
+
+
 class StorageConfig(_Model):
-    """``[storage]``: where sweeps and the job database live (relative to the config file)."""
+    """``[storage]``: where sweeps and the job database live (relative to the config file).
+
+    ``database`` is a SQLite file (one station, nothing to install) or a
+    ``postgresql://user:password@host:port/dbname`` URL (several stations on one
+    database, each running only its own jobs: ``station_id``). ``archive_url``
+    (``s3://bucket/prefix``) uploads every archive to object storage after the
+    frames are written locally (``[storage.s3]``).
+    """
 
     data_dir: LoosePath = Field(
         default=Path("data"), description="directory of sweep archives and results"
     )
-    database: LoosePath = Field(
-        default=Path("data/lfcal.sqlite3"), description="SQLite database file"
+    database: str | LoosePath = Field(
+        default=Path("data/lfcal.sqlite3"),
+        description="SQLite database file, or a postgresql:// URL",
     )
+    station_id: str | None = Field(
+        default=None,
+        pattern=STATION_ID_PATTERN,
+        description="this station's name in a shared database (default: $LFCAL_STATION_ID "
+        "or the host name)",
+    )
+    archive_url: str | None = Field(
+        default=None,
+        pattern=r"^s3://[a-z0-9][a-z0-9.-]{1,61}[a-z0-9](/[^\s]*)?$",
+        description="upload archives to s3://bucket/prefix (frames are written locally first)",
+    )
+    keep_local_archives: bool = Field(
+        default=True,
+        description="keep the local copy of an archive once it is uploaded and verified",
+    )
+    archive_cache_dir: LoosePath | None = Field(
+        default=None,
+        description="where archives read from object storage are kept (default "
+        "data_dir/archive-cache)",
+    )
+    s3: S3Config = Field(default_factory=lambda: S3Config())
 
-    @field_validator("data_dir", "database", mode="after")
+    @field_validator("data_dir", "archive_cache_dir", mode="after")
     @classmethod
-    def _resolve(cls, value: Path, info: ValidationInfo) -> Path | None:
+    def _resolve(cls, value: Path | None, info: ValidationInfo) -> Path | None:
         return _resolve_path(value, info)
+
+    @field_validator("database", mode="after")
+    @classmethod
+    def _resolve_database(cls, value: str | Path, info: ValidationInfo) -> str | Path | None:
+        text = str(value)
+        if text.lower().startswith(_POSTGRES_SCHEMES):
+            return text
+        if "://" in text:
+            raise ValueError(
+                "must be a SQLite file path or a postgresql:// URL, got a "
+                f"{text.split('://', 1)[0]}:// URL"
+            )
+        return _resolve_path(Path(value), info)
+
+    @property
+    def postgres(self) -> bool:
+        """The job database is a PostgreSQL server."""
+        return isinstance(self.database, str)
+
+    @property
+    def database_path(self) -> Path | None:
+        """The SQLite file (None for PostgreSQL)."""
+        return None if isinstance(self.database, str) else self.database
+
+    @property
+    def cache_dir(self) -> Path:
+        """Local cache of archives read from object storage."""
+        return self.archive_cache_dir or self.data_dir / "archive-cache"
 
 
 class ServerConfig(_Model):
@@ -469,6 +665,10 @@ class StationConfig(_Model):
                 "main_focal_mm": self.optics.main_focal_mm,
                 "mla_focal_mm": self.optics.mla_focal_mm,
                 "mla_pitch_mm": self.optics.mla_pitch_mm,
+                **_given(
+                    main_focal_tolerance_mm=self.optics.main_focal_tolerance_mm,
+                    mla_focal_tolerance_mm=self.optics.mla_focal_tolerance_mm,
+                ),
             },
             "board": {
                 "square_mm": self.board.square_mm,
@@ -477,10 +677,18 @@ class StationConfig(_Model):
             "rail": {
                 "zero_object_distance_mm": self.rail.zero_object_distance_mm,
                 "direction": self.rail.direction,
+                **_given(
+                    zero_object_distance_tolerance_mm=self.rail.zero_object_distance_tolerance_mm
+                ),
             },
             "white": "white.png",
             "frames": [],
         }
+
+
+def _given(**values: float | None) -> dict[str, float]:
+    """The keyword arguments that are set (optional manifest keys are written only then)."""
+    return {k: v for k, v in values.items() if v is not None}
 
 
 SECTIONS: dict[str, type[_Model]] = {
@@ -595,8 +803,9 @@ def cross_field_problems(
     if storage is not None:
         if storage.data_dir.exists() and not storage.data_dir.is_dir():
             out.add("storage.data_dir", f"{storage.data_dir} exists and is not a directory")
-        if storage.database.is_dir():
-            out.add("storage.database", f"{storage.database} is a directory, not a file")
+        path = storage.database_path
+        if path is not None and path.is_dir():
+            out.add("storage.database", f"{path} is a directory, not a file")
     if server is not None:
         _server_problems(out, server)
     return out.items
@@ -619,10 +828,20 @@ def _camera_problems(out: _Problems, cam: CameraConfig) -> None:
                     'not used with backend = "simulated" (set backend = "aravis" or "harvesters")',
                     "camera.backend",
                 )
+        if cam.trigger != "software":
+            out.add("camera.trigger", 'the simulated camera has only "software"')
     else:
-        for key in ("preset", "seed", "principal_point_px"):
+        for key in ("preset", "seed", "principal_point_px", "frame_cache"):
             if key in given:
                 out.add(f"camera.{key}", 'only used with backend = "simulated"', "camera.backend")
+        if cam.interface == "usb3" and cam.backend != "aravis":
+            out.add("camera.interface", 'only used with backend = "aravis"', "camera.backend")
+        if cam.interface == "usb3" and cam.serial is None:
+            out.add(
+                "camera.serial",
+                'field required (interface = "usb3" opens the camera by serial)',
+                "camera.interface",
+            )
         if cam.backend == "aravis" and cam.address is None and cam.serial is None:
             out.add(
                 "camera.address",
@@ -1000,6 +1219,31 @@ def load_config(
         raise ConfigError(problems)
     config._source = p
     return config
+
+
+def with_frame_cache(
+    config: StationConfig, cache_dir: str | os.PathLike[str] | None
+) -> StationConfig:
+    """``config`` with ``[camera] frame_cache = cache_dir`` (what ``--sim-frame-cache DIR``
+    does); unchanged when ``cache_dir`` is None or the camera is not simulated."""
+    if cache_dir is None or config.camera.backend != "simulated":
+        return config
+    camera = config.camera.model_copy(update={"frame_cache": Path(cache_dir).absolute()})
+    return config.model_copy(update={"camera": camera})
+
+
+def load_config_or_report(
+    path: str | os.PathLike[str], command: str, err: TextIO
+) -> StationConfig | None:
+    """:func:`load_config`, or None after writing ``COMMAND: PATH: invalid
+    configuration`` and one indented line per problem to ``err``."""
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        err.write(f"{command}: {path}: invalid configuration\n")
+        for line in exc.format_problems():
+            err.write(f"  {line}\n")
+        return None
 
 
 def check_config_file(path: str | os.PathLike[str]) -> list[str]:

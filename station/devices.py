@@ -13,8 +13,11 @@ configuration says, and returns them as :class:`StationDevices`::
 * camera: Aravis by ``camera.address`` (unicast; never GigE discovery), harvesters by
   ``camera.cti`` + ``camera.serial``, or the simulated camera of the bench; it is
   opened and configured with ``[camera]`` (pixel format, exposure, gain, ROI);
-* simulated/emulated parts come from ``drivers.sim.bench``, loaded **by name** only when
-  the configuration asks for them: production code never imports ``drivers.sim``;
+* simulated/emulated parts are a backend like any other: :data:`SIMULATION_BACKEND` names
+  its modules (``drivers.sim.bench``, ``drivers.sim.plenoptic_scene``), loaded **by name**
+  only when the configuration asks for them (``camera.backend = "simulated"``,
+  ``driver = "emulated"``); production code never imports ``drivers.sim``, and caching
+  rendered frames (``camera.frame_cache``) is the simulated camera's own business;
 * homing: each stage is homed at open when its ``home_on_connect`` is true (override
   with ``home=``); rail and XY stage home at the same time.
 
@@ -36,13 +39,19 @@ from types import TracebackType
 from typing import Any
 
 from drivers.axis import Axis
-from drivers.camera import Camera, CameraSettings, Roi, create_camera
+from drivers.camera import Camera, CameraSettings, Roi, TransportSettings, create_camera
 from drivers.errors import DeviceError, PortUnavailable
 from drivers.zaber import XYStage, ZaberAxis, ZaberAxisConfig, ZaberPort, open_rail, open_xy_stage
 from station.config import RailConfig, StationConfig, XYStageConfig
 
-BENCH_MODULE = "drivers.sim.bench"
-"""Module of the simulated bench, imported by name when the config asks for it."""
+SIMULATION_BACKEND: dict[str, str] = {
+    "bench": "drivers.sim.bench",
+    "scene": "drivers.sim.plenoptic_scene",
+}
+"""Modules of the simulated backend, imported by name when the config asks for them:
+the bench (emulated stages and the simulated camera) and the plenoptic scene it shows."""
+
+BENCH_MODULE = SIMULATION_BACKEND["bench"]
 
 SIM_REFERENCE_EXPOSURE_US = 10000.0
 """Exposure (µs) at which the simulated scene has the preset's white level."""
@@ -191,6 +200,8 @@ def describe_camera(camera: Camera, settings: CameraSettings | None) -> dict[str
             exposure_us=settings.exposure_us,
             gain=settings.gain,
         )
+    if info.has_temperature:
+        out["temperature_c"] = camera.temperature_c()
     return out
 
 
@@ -294,17 +305,37 @@ def _camera_settings(config: StationConfig) -> CameraSettings:
     if cam.roi is not None:
         roi = Roi(cam.roi.width, cam.roi.height, cam.roi.offset_x, cam.roi.offset_y)
     return CameraSettings(
-        pixel_format=cam.pixel_format, exposure_us=cam.exposure_us, gain=cam.gain, roi=roi
+        pixel_format=cam.pixel_format,
+        exposure_us=cam.exposure_us,
+        gain=cam.gain,
+        roi=roi,
+        black_level=cam.black_level,
+        trigger=cam.trigger,
+        trigger_activation=cam.trigger_activation,
+        flat_field=cam.flat_field,
+    )
+
+
+def transport_settings(config: StationConfig) -> TransportSettings:
+    """``[camera.transport]`` as the drivers take it."""
+    t = config.camera.transport
+    return TransportSettings(
+        packet_size=t.packet_size,
+        packet_delay_ns=t.packet_delay_ns,
+        throughput_limit_bps=t.throughput_limit_bps,
+        buffer_count=t.buffer_count,
+        socket_buffer_bytes=t.socket_buffer_bytes,
+        frame_retention_ms=t.frame_retention_ms,
+        packet_resend=t.packet_resend,
     )
 
 
 def _make_scene(config: StationConfig) -> Any:
     """The plenoptic scene of the simulated camera (``[camera]`` preset and size)."""
-    from station.sim_scene import scene_from_preset
-
+    scene_module = importlib.import_module(SIMULATION_BACKEND["scene"])
     cam = config.camera
     try:
-        return scene_from_preset(
+        return scene_module.scene_from_preset(
             cam.preset,
             width=cam.width,
             height=cam.height,
@@ -325,7 +356,7 @@ def _make_bench(config: StationConfig, scene: Any | None, speedup: float) -> Any
     otherwise only the emulated one (the other is real and feeds the scene through
     ``use_rail_position`` / ``use_stage_position``).
     """
-    bench_module = importlib.import_module(BENCH_MODULE)
+    bench_module = importlib.import_module(SIMULATION_BACKEND["bench"])
     BenchAxis = bench_module.BenchAxis
     rail = xy_x = xy_y = None
     if config.rail.driver == "emulated":
@@ -365,6 +396,7 @@ def _make_bench(config: StationConfig, scene: Any | None, speedup: float) -> Any
             speedup=speedup,
             camera_seed=config.camera.seed,
             reference_exposure_us=SIM_REFERENCE_EXPOSURE_US,
+            frame_cache=config.camera.frame_cache if scene is not None else None,
         )
         return bench.start()
     except (OSError, ValueError) as exc:
@@ -562,6 +594,8 @@ def _open_camera(
                 serial=cam_cfg.serial,
                 cti=cam_cfg.cti,
                 allow_discovery=False,
+                interface=cam_cfg.interface,
+                transport=transport_settings(config),
             )
         assert camera is not None
         camera.open()
@@ -584,6 +618,7 @@ def position_text(value_mm: float | None) -> str:
 __all__ = [
     "BENCH_MODULE",
     "ROLES",
+    "SIMULATION_BACKEND",
     "ROLE_NAMES",
     "DevicesError",
     "StationDevices",

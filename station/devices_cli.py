@@ -7,6 +7,11 @@ invalid or a device fails, prints one line per problem / failing device on stder
 
 The command does not move anything unless asked to home (``home=True``); an unhomed
 Zaber axis shows its position as ``unknown``.
+
+``--check`` (``check=True``) adds the bring-up report of :mod:`station.bringup`: one
+``PASS``/``FAIL`` line per check (identity and firmware, settings read back, a short
+move of each axis with its read-back error, a test grab with its counts and
+temperature); it homes and moves the stages.  Exit 2 on any FAIL.
 """
 
 from __future__ import annotations
@@ -117,6 +122,7 @@ def devices_main(
     config_path: str | os.PathLike[str],
     *,
     home: bool = False,
+    check: bool = False,
     out: TextIO | None = None,
     err: TextIO | None = None,
 ) -> int:
@@ -125,6 +131,7 @@ def devices_main(
     Args:
         config_path: the station configuration (TOML).
         home: home the stages first (moves them); default: no motion.
+        check: run the bring-up report after the table (homes and moves the stages).
         out, err: streams for the table and the failure lines (default stdout, stderr).
     """
     out = out or sys.stdout
@@ -145,10 +152,27 @@ def devices_main(
         return EXIT_FAILED
     with devices:
         description = devices.describe()
-    print(format_table(description), file=out)
-    failures = failure_lines(description)
-    for line in failures:
-        print(line, file=err)
+        print(format_table(description), file=out)
+        failures = failure_lines(description)
+        for line in failures:
+            print(line, file=err)
+        if check:
+            from station.bringup import bring_up_report
+
+            report = bring_up_report(devices, config)
+            print("", file=out)
+            print("bring-up check:", file=out)
+            for entry in report:
+                print(str(entry), file=out)
+            failed = sum(not entry.ok for entry in report)
+            print(
+                f"{len(report) - failed} passed, {failed} failed"
+                if failed
+                else f"all {len(report)} checks passed",
+                file=out,
+            )
+            if failed:
+                return EXIT_FAILED
     return EXIT_FAILED if failures else EXIT_OK
 
 

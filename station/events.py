@@ -11,7 +11,8 @@ Events (:class:`JobEvent`):
 ``analysis``
     a frame's analysis finished (``id`` None). ``data``: index, rail_mm,
     object_distance_mm, Q, Ls_px, Lr_px, La_mm (the focus curve La(u) point,
-    None until both corners are measured), edge_width_px, error.
+    None until both corners are measured), edge_width_px (blurred-step σ), edge_spread_px
+    (RMS width of the frame's edge-spread function: what the defocus model fits), error.
 ``state``
     the job changed state (``id`` None). ``data``: state, from, reason, last_error.
 ``fault``
@@ -95,6 +96,7 @@ def analysis_payload(summary: FrameSummary, reference_gap_mm: float) -> dict[str
         "Lr_px": _num(summary.Lr_px),
         "La_mm": la_mm(summary, reference_gap_mm),
         "edge_width_px": _num(summary.edge_width_px),
+        "edge_spread_px": _num(summary.edge_spread_px),
         "error": summary.error or None,
     }
 

@@ -15,10 +15,16 @@ station process holds the database, 130 interrupted.
 
 ``jobs_main(argv)``::
 
-    lfcal jobs [--config FILE | --db FILE] [--state STATE ...] [--json] [JOB]
+    lfcal jobs [--config FILE | --db DATABASE] [--state STATE ...] [--station S]
+               [--camera-serial SERIAL] [--json] [JOB [--results]]
 
-lists the stored jobs (id, state, frames, created, archive, last error); with
-``JOB`` shows one job with its transitions. It only reads the database.
+lists the stored jobs (id, station, camera, state, frames, created, archive, last
+error) of every station sharing the database (the fleet view; ``--station`` and
+``--camera-serial`` filter); with ``JOB`` shows one job with its transitions, and
+with ``--results`` every version of its result (the station's and each
+``lfcal recalibrate``'s, with software version and date). ``--db`` takes a SQLite
+file or a ``postgresql://`` URL. It only reads the database (after bringing its
+schema up to date).
 """
 
 from __future__ import annotations
@@ -122,7 +128,7 @@ def _sweep_parser() -> argparse.ArgumentParser:
         "--sim-frame-cache",
         default=None,
         metavar="DIR",
-        help="simulated camera only: reuse rendered frames from DIR",
+        help="simulated camera only: reuse rendered frames from DIR (sets [camera] frame_cache)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -149,23 +155,16 @@ def _print_result(out: TextIO, result: dict[str, Any]) -> None:
 
 def sweep_main(argv: Sequence[str] | None = None) -> int:
     """``lfcal sweep``: run (or resume) one job; returns the exit code."""
-    from station.config import ConfigError, load_config
+    from station.config import load_config_or_report, with_frame_cache
     from station.events import JobEvent
     from station.orchestrator import FINAL_STATES, Orchestrator, StationBusy
-    from station.store import InvalidTransition, JobNotFound, JobState
+    from station.store import InvalidTransition, JobNotFound, JobState, StoreError
     from station.sweep import RequestInvalid
 
     args = _sweep_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     out, err = sys.stdout, sys.stderr
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        err.write(f"lfcal sweep: {args.config}: invalid configuration\n")
-        for line in exc.format_problems():
-            err.write(f"  {line}\n")
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        err.write(f"lfcal sweep: cannot read {args.config}: {exc.strerror or exc}\n")
+    config = load_config_or_report(args.config, "lfcal sweep", err)
+    if config is None:
         return EXIT_BAD_INPUT
     if not args.emulator_speedup > 0:
         err.write("lfcal sweep: --emulator-speedup must be positive\n")
@@ -184,16 +183,18 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
         request["calibrate"] = False
 
     station = Orchestrator(
-        config,
+        with_frame_cache(config, args.sim_frame_cache),
         emulator_speedup=args.emulator_speedup,
         run_queued=False,
-        sim_frame_cache=args.sim_frame_cache,
     )
     try:
         station.start()
     except StationBusy as exc:
         err.write(f"lfcal sweep: {exc}\n")
         return EXIT_BUSY
+    except StoreError as exc:  # database or object store unreachable, schema too new
+        err.write(f"lfcal sweep: {exc}\n")
+        return EXIT_BAD_INPUT
     bar = ProgressBar(err)
     finished = threading.Event()
     job_id: int | None = None
@@ -260,9 +261,10 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
 
 
 def _report(config: Any, job_id: int, out: TextIO, err: TextIO, interrupted: bool) -> int:
-    from station.store import JobState, JobStore
+    from station.ownership import open_store
+    from station.store import JobState
 
-    with JobStore(config.storage.database) as store:
+    with open_store(config) as store:
         job = store.get_job(job_id, with_result=True)
         frames = store.step_count(job_id)
     out.write(
@@ -288,13 +290,62 @@ def _jobs_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lfcal jobs", description="list the stored sweep jobs")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--config", help="station configuration (its [storage] database)")
-    where.add_argument("--db", help="the job database file itself")
+    where.add_argument("--db", help="the job database: a SQLite file or a postgresql:// URL")
     p.add_argument(
         "--state", action="append", default=None, help="only jobs in this state (repeatable)"
     )
+    p.add_argument("--station", default=None, help="only jobs of this station")
+    p.add_argument("--camera-serial", default=None, help="only jobs of the camera with this serial")
+    p.add_argument("--results", action="store_true", help="with JOB: every version of its result")
     p.add_argument("--json", action="store_true", help="JSON output")
     p.add_argument("job", nargs="?", type=int, help="show this job with its transitions")
     return p
+
+
+def _job_dict(job: Any, frames: int, alive: bool | None = None) -> dict[str, Any]:
+    return {
+        "id": job.id,
+        "station_id": job.station_id,
+        "station_alive": alive,
+        "camera_serial": job.camera_serial,
+        "state": job.state.value,
+        "frames_done": frames,
+        "frames_total": job.frames_total,
+        "created_at": job.created_at,
+        "archive_dir": str(job.archive_dir),
+        "archive_url": job.archive_url,
+        "archive_uploaded_at": job.archive_uploaded_at,
+        "last_error": job.last_error,
+    }
+
+
+def _show_results(store: Any, job_id: int, as_json: bool, out: TextIO) -> int:
+    from station.result_versions import result_versions
+
+    versions = result_versions(store, job_id, with_results=True)
+    if as_json:
+        out.write(json.dumps([v.to_dict() for v in versions], indent=1) + "\n")
+        return EXIT_OK
+    if not versions:
+        out.write(f"job {job_id}: no result\n")
+        return EXIT_OK
+    for v in versions:
+        result = v.result or {}
+        focus = result.get("focus") or {}
+        values = "  ".join(
+            f"{name} {val:.5f}"
+            for name, val in (
+                ("a", result.get("a_mm")),
+                ("b", result.get("b_mm")),
+                ("focus", focus.get("object_distance_mm")),
+            )
+            if isinstance(val, int | float)
+        )
+        out.write(
+            f"  version {v.version}  {v.source:<11} software {v.software_version:<12} "
+            f"{_when(v.created_at)}  {values}\n"
+        )
+    return EXIT_OK
 
 
 def _when(t: float) -> str:
@@ -303,27 +354,28 @@ def _when(t: float) -> str:
 
 def jobs_main(argv: Sequence[str] | None = None) -> int:
     """``lfcal jobs``: list the stored jobs (or show one); returns the exit code."""
-    from station.store import JobNotFound, JobState, JobStore
+    from station.db import StoreError
+    from station.db_postgres import is_postgres_url
+    from station.ownership import live_stations, station_alive
+    from station.store import ACTIVE_STATES, JobNotFound, JobState, JobStore
 
     args = _jobs_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     out, err = sys.stdout, sys.stderr
+    db: str | Path
     if args.db is not None:
-        db = Path(args.db)
+        db = args.db if is_postgres_url(args.db) else Path(args.db)
     else:
-        from station.config import ConfigError, load_config
+        from station.config import load_config_or_report
 
-        try:
-            db = Path(load_config(args.config).storage.database)
-        except ConfigError as exc:
-            err.write(f"lfcal jobs: {args.config}: invalid configuration\n")
-            for line in exc.format_problems():
-                err.write(f"  {line}\n")
+        config = load_config_or_report(args.config, "lfcal jobs", err)
+        if config is None:
             return EXIT_BAD_INPUT
-        except OSError as exc:
-            err.write(f"lfcal jobs: cannot read {args.config}: {exc.strerror or exc}\n")
-            return EXIT_BAD_INPUT
-    if not db.is_file():
+        db = config.storage.database
+    if isinstance(db, Path) and not db.is_file():
         err.write(f"lfcal jobs: no job database at {db} (no job has run yet)\n")
+        return EXIT_BAD_INPUT
+    if args.results and args.job is None:
+        err.write("lfcal jobs: --results needs a JOB\n")
         return EXIT_BAD_INPUT
     states = None
     if args.state:
@@ -333,26 +385,27 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
             valid = ", ".join(s.value for s in JobState)
             err.write(f"lfcal jobs: --state must be one of {valid}\n")
             return EXIT_BAD_INPUT
-    with JobStore(db) as store:
+    try:
+        store = JobStore(db, station_id="")
+    except StoreError as exc:
+        err.write(f"lfcal jobs: {exc}\n")
+        return EXIT_BAD_INPUT
+    with store:
         if args.job is not None:
             try:
                 job = store.get_job(args.job, with_result=True)
             except JobNotFound as exc:
                 err.write(f"lfcal jobs: {exc}\n")
                 return EXIT_BAD_INPUT
+            if args.results:
+                return _show_results(store, job.id, args.json, out)
             frames = store.step_count(job.id)
             transitions = store.transitions(job.id)
             if args.json:
                 data = {
-                    "id": job.id,
-                    "state": job.state.value,
+                    **_job_dict(job, frames),
                     "request": job.request,
-                    "frames_done": frames,
-                    "frames_total": job.frames_total,
-                    "created_at": job.created_at,
                     "updated_at": job.updated_at,
-                    "archive_dir": str(job.archive_dir),
-                    "last_error": job.last_error,
                     "has_result": job.has_result,
                     "transitions": [
                         {
@@ -367,8 +420,12 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
                 out.write(json.dumps(data, indent=1) + "\n")
                 return EXIT_OK
             out.write(f"job {job.id}: {job.state.value}, {frames}/{job.frames_total} frames\n")
+            out.write(f"  station: {job.station_id or '-'}, camera {job.camera_serial or '-'}\n")
             out.write(f"  sweep: {json.dumps(job.request)}\n")
             out.write(f"  archive: {job.archive_dir}\n")
+            if job.archive_url:
+                uploaded = "uploaded" if job.archive_uploaded_at else "not completely uploaded yet"
+                out.write(f"  archive URL: {job.archive_url} ({uploaded})\n")
             if job.last_error:
                 out.write(f"  last error: {job.last_error}\n")
             for t in transitions:
@@ -377,38 +434,44 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
             if job.result is not None and job.state is JobState.SUCCEEDED:
                 _print_result(out, job.result)
             return EXIT_OK
-        jobs = store.list_jobs(states=states)
-        counts = {j.id: store.step_count(j.id) for j in jobs}
-    if args.json:
-        out.write(
-            json.dumps(
-                [
-                    {
-                        "id": j.id,
-                        "state": j.state.value,
-                        "frames_done": counts[j.id],
-                        "frames_total": j.frames_total,
-                        "created_at": j.created_at,
-                        "archive_dir": str(j.archive_dir),
-                        "last_error": j.last_error,
-                    }
-                    for j in jobs
-                ],
-                indent=1,
+        try:
+            jobs = store.list_jobs(
+                states=states, station=args.station, camera_serial=args.camera_serial
             )
-            + "\n"
-        )
+            counts = {j.id: store.step_count(j.id) for j in jobs}
+            live = live_stations(store)
+            # a reader is no station: liveness only where the database can tell (PostgreSQL)
+            alive = {
+                j.id: None if live is None else station_alive(store, j.station_id, live)
+                for j in jobs
+            }
+        except StoreError as exc:
+            err.write(f"lfcal jobs: {exc}\n")
+            return EXIT_BAD_INPUT
+    if args.json:
+        rows = [_job_dict(j, counts[j.id], alive[j.id]) for j in jobs]
+        out.write(json.dumps(rows, indent=1) + "\n")
         return EXIT_OK
     if not jobs:
         out.write("no jobs\n")
         return EXIT_OK
-    out.write(f"{'id':>5}  {'state':<11} {'frames':>9}  {'created':<19}  archive / last error\n")
+    station_w = max(7, *(len(j.station_id) for j in jobs))
+    camera_w = max(6, *(len(j.camera_serial or "-") for j in jobs))
+    out.write(
+        f"{'id':>5}  {'station':<{station_w}}  {'camera':<{camera_w}}  {'state':<11} "
+        f"{'frames':>9}  {'created':<19}  archive / last error\n"
+    )
     for j in jobs:
         done = f"{counts[j.id]}/{j.frames_total}"
-        tail = str(j.archive_dir)
+        tail = j.archive_url or str(j.archive_dir)
+        if j.state in ACTIVE_STATES and alive[j.id] is False:
+            tail += f"  (station {j.station_id} is down: no worker until it restarts)"
         if j.last_error:
             tail += f"  ({j.last_error[:100]})"
-        out.write(f"{j.id:>5}  {j.state.value:<11} {done:>9}  {_when(j.created_at)}  {tail}\n")
+        out.write(
+            f"{j.id:>5}  {j.station_id or '-':<{station_w}}  {j.camera_serial or '-':<{camera_w}}  "
+            f"{j.state.value:<11} {done:>9}  {_when(j.created_at)}  {tail}\n"
+        )
     return EXIT_OK
 
 

@@ -24,19 +24,34 @@ resumed or cancelled. A queued or interrupted job is cancelled at once.
 ``resume`` continues a paused job, or re-queues an interrupted or failed one,
 which then continues from its first missing frame.
 
-Start-up (:meth:`Orchestrator.start`): an exclusive lock on the database (one
-station process per database; the lock dies with the process), then every job
-found ``running`` or ``paused`` -- the previous process died under it --
-has its frames verified against the stored checksums
-(:func:`station.recovery.reconcile`) and becomes ``interrupted``; queued jobs
-are run in order.
+Start-up (:meth:`Orchestrator.start`): the station's ownership
+(:mod:`station.ownership`: an exclusive lock on a SQLite file, or this station's
+advisory lock on a shared PostgreSQL database; it dies with the process), the job
+store (schema migrated), then every job *of this station* found ``running`` or
+``paused`` -- the previous process died under it -- has its frames verified
+against the stored checksums (:func:`station.recovery.reconcile`) and becomes
+``interrupted``; this station's queued jobs are run in order. Jobs of other
+stations sharing the database are visible but never run, paused, resumed or
+cancelled here (:class:`station.ownership.ForeignJob`, 409). With ``[storage]
+archive_url`` the archives are uploaded by :class:`station.archive_sync.ArchiveUploader`
+(the object store must be reachable at start-up).
+
+**Supervision** (:mod:`station.supervisor`): the hardware worker never dies
+of an exception. Whatever escapes a run (a bug, the store refusing a write)
+ends the job in a final state with the reason -- ``failed``, or
+``interrupted`` when the store itself cannot be written: that state is then
+kept in memory (:meth:`Orchestrator.status` and the event streams show it),
+written as soon as the store accepts writes again, and in any case found by
+the next start's recovery. The worker then goes on serving the queue (a job
+that cannot be marked ``running`` stays ``queued`` until the store can be
+written). :meth:`Orchestrator.health` says what is down and whether jobs can
+run.
 """
 
 from __future__ import annotations
 
 import collections
-import fcntl
-import os
+import dataclasses
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -47,8 +62,11 @@ from typing import Any
 from calibration.archive import frame_file_name, read_image, read_manifest
 from drivers.errors import DeviceError
 from station.analysis import AnalysisPool, summary_from_dict
+from station.archive_source import ArchiveReader
 from station.config import StationConfig
 from station.events import EventHub, JobEvent, LiveProgress, Subscription, analysis_payload
+from station.job_cache import JobRecordCache
+from station.ownership import ForeignJob, Ownership, StationBusy, claim_station, open_store
 from station.recovery import VerifyReport, reconcile
 from station.runner import JobControl, Outcome, RunContext, StepTiming, SweepRun
 from station.store import (
@@ -58,9 +76,12 @@ from station.store import (
     JobState,
     JobStore,
     StepRecord,
+    StoreError,
+    StoreUnavailable,
     Transition,
 )
-from station.sweep import SweepPlan, SweepRequest, plan_sweep
+from station.supervisor import Supervisor, Unrecorded, storage_problem, white_problem
+from station.sweep import RequestInvalid, SweepPlan, SweepRequest, plan_sweep
 
 FINAL_STATES = frozenset(
     {JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED}
@@ -68,8 +89,8 @@ FINAL_STATES = frozenset(
 """States in which a job is not (or no longer) being worked on."""
 
 
-class StationBusy(RuntimeError):
-    """Another station process holds the database (one station per database)."""
+REOPEN_INTERVAL_S = 5.0
+"""Closed devices (after a fault) are tried again at most this often by :meth:`Orchestrator.devices_info`."""
 
 
 class ResultNotReady(RuntimeError):
@@ -115,6 +136,8 @@ class JobStatus:
         pause_requested, cancel_requested: a request waiting for the next step boundary.
         has_result: a calibration result (or a failed calibration's partial result) is stored.
         recent_fault: the last fault the active job recovered from, else None.
+        station_id, camera_serial, archive_url: from the store (see
+            :class:`station.store.JobRecord`).
     """
 
     id: int
@@ -134,6 +157,9 @@ class JobStatus:
     pause_requested: bool = False
     cancel_requested: bool = False
     recent_fault: str | None = None
+    station_id: str = ""
+    camera_serial: str | None = None
+    archive_url: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (``state`` as its string)."""
@@ -171,8 +197,6 @@ class Orchestrator:
             passes False: it runs only what it submits).
         open_devices_at_start: open the devices as soon as the worker starts
             (else at the first job).
-        sim_frame_cache: simulated camera only: cache rendered frames in this
-            directory (:mod:`station.sim_cache`).
     """
 
     def __init__(
@@ -185,22 +209,17 @@ class Orchestrator:
         emulator_speedup: float = 1.0,
         run_queued: bool = True,
         open_devices_at_start: bool = True,
-        sim_frame_cache: str | os.PathLike[str] | None = None,
     ) -> None:
         self.config = config
         self.data_dir = Path(config.storage.data_dir)
-        self._db_path = Path(config.storage.database)
+        self._db_path = config.storage.database_path or self.data_dir
+        self._archives = ArchiveReader(config.storage.cache_dir, config.storage.s3)
+        self._uploader: Any = None
         self._store = store
         self._own_store = store is None
         if devices_factory is None:
 
             def devices_factory() -> Any:
-                if sim_frame_cache is not None:
-                    from station.sim_cache import open_devices_with_frame_cache
-
-                    return open_devices_with_frame_cache(
-                        config, sim_frame_cache, emulator_speedup=emulator_speedup
-                    )
                 from station.devices import open_devices
 
                 return open_devices(config, emulator_speedup=emulator_speedup)
@@ -218,15 +237,21 @@ class Orchestrator:
         self._hw_lock = threading.Lock()
         self._devices = _DevicesState()
         self._devices_tried = threading.Event()
+        self._last_open = 0.0
         self._timings: dict[int, list[StepTiming]] = {}
+        self._jobs = JobRecordCache()
         self._stopping = False
         self._thread: threading.Thread | None = None
-        self._lock_fd: int | None = None
+        self._ownership: Ownership | None = None
+        self._held_for_ownership = False  # queued jobs held while the ownership is lost
         self._pp_cache: dict[str, tuple[float, float]] = {}
         self._exposure_limits: tuple[float, float] | None = None
         self._rail_limits: tuple[float, float] | None = None
         #: Start-up verification of the jobs found running or paused (job id -> report).
         self.recovery_reports: dict[int, VerifyReport] = {}
+        #: Final states the store refused to record (job id -> state and reason).
+        self._unrecorded: dict[int, Unrecorded] = {}
+        self.supervisor = Supervisor()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -242,36 +267,64 @@ class Orchestrator:
         if self._thread is not None:
             return self
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self._take_lock()
+        self._ownership = claim_station(self.config)
         try:
             if self._store is None:
-                self._store = JobStore(self._db_path)
+                self._store = open_store(self.config)
             self._recover()
             if self._run_queued:
-                for job in self._store.list_jobs(states={JobState.QUEUED}):
+                mine = self._store.own_station
+                for job in self._store.list_jobs(states={JobState.QUEUED}, station=mine):
                     self._queue.append(job.id)
+            self._uploader = self._start_uploader()
         except BaseException:
+            if self._own_store and self._store is not None:
+                self._store.close()
+                self._store = None
             self._release_lock()
             raise
         self._thread = threading.Thread(target=self._worker, name="hardware-worker", daemon=True)
         self._thread.start()
         return self
 
-    def close(self, timeout_s: float = 120.0) -> None:
-        """Stop: the active job stops at its next step boundary (``interrupted``),
-        the devices are closed, the analysis processes stopped (idempotent)."""
+    def stop_jobs(self, timeout_s: float = 30.0) -> bool:
+        """Begin a shut-down: refuse new jobs, stop the active job at its next step
+        boundary (``interrupted``, resumable) and wait up to ``timeout_s`` for it to
+        reach that state (its ``state`` event is published). True if no job is active."""
         with self._lock:
             self._stopping = True
             active = self._active
             self._changed.notify_all()
         if active is not None:
             active.control.request_shutdown()
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while self._active is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._changed.wait(min(left, 0.5))
+        return True
+
+    @property
+    def stopping(self) -> bool:
+        """A shut-down has begun (new jobs are refused)."""
+        return self._stopping
+
+    def close(self, timeout_s: float = 120.0) -> None:
+        """Stop: the active job stops at its next step boundary (``interrupted``),
+        the devices are closed, the analysis processes stopped (idempotent)."""
+        self.stop_jobs(0.0)
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
+        self._flush_unrecorded()
         if self._pool is not None:
             self._pool.close()
         self._close_devices()
+        if self._uploader is not None:
+            self._uploader.stop()
+            self._uploader = None
         if self._own_store and self._store is not None:
             self._store.close()
         self._release_lock()
@@ -282,37 +335,43 @@ class Orchestrator:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _take_lock(self) -> None:
-        path = self._db_path.with_name(self._db_path.name + ".lock")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            try:
-                holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
-            except OSError:
-                holder = "?"
-            os.close(fd)
-            raise StationBusy(
-                f"another station process (pid {holder or '?'}) is using the job database "
-                f"{self._db_path}; stop it, or use another [storage] database"
-            ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        self._lock_fd = fd
-
     def _release_lock(self) -> None:
-        fd, self._lock_fd = self._lock_fd, None
-        if fd is not None:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_UN)
-            finally:
-                os.close(fd)
+        ownership, self._ownership = self._ownership, None
+        if ownership is not None:
+            ownership.release()
+
+    def _start_uploader(self) -> Any:
+        """The archive uploader when ``[storage] archive_url`` is set (the object store
+        must answer now: :class:`station.objectstore.ObjectStoreUnavailable` otherwise)."""
+        storage = self.config.storage
+        if storage.archive_url is None:
+            return None
+        from station.archive_sync import ArchiveUploader
+        from station.objectstore import ObjectStore
+
+        objects = ObjectStore(storage.archive_url, storage.s3)
+        objects.check()
+        return ArchiveUploader(
+            self.store,
+            objects,
+            self.data_dir,
+            keep_local=storage.keep_local_archives,
+            retry_s=storage.s3.upload_retry_s,
+        ).start()
+
+    @property
+    def uploader(self) -> Any:
+        """The archive uploader (None without object storage)."""
+        return self._uploader
+
+    def _own(self, job: JobRecord) -> None:
+        """Raise :class:`station.ownership.ForeignJob` for another station's job."""
+        if not self.store.owns(job):
+            raise ForeignJob(job.id, job.station_id, self.store.station_id, job.state)
 
     def _recover(self) -> None:
         store = self.store
-        for job in store.list_jobs(states=set(ACTIVE_STATES)):
+        for job in store.list_jobs(states=set(ACTIVE_STATES), station=store.own_station):
             try:
                 report = reconcile(store, job.id, Path(job.archive_dir))
                 self.recovery_reports[job.id] = report
@@ -323,7 +382,7 @@ class Orchestrator:
                 f"the station process ended while the job was {job.state.value} "
                 f"(found at start-up); {summary}"
             )
-            store.transition(job.id, JobState.INTERRUPTED, reason, last_error=reason)
+            self._store_transition(job.id, JobState.INTERRUPTED, reason, last_error=reason)
 
     # ------------------------------------------------------------------ submit / control
 
@@ -361,7 +420,11 @@ class Orchestrator:
         """
         plan = self.validate(request)
         if plan.white_from_job is not None:
-            self.store.get_job(plan.white_from_job)  # JobNotFound if unknown
+            source = self.store.get_job(plan.white_from_job)  # JobNotFound if unknown
+            problem = white_problem(source)
+            if problem is not None:
+                raise RequestInvalid([("white_from_job", problem)])
+        self.check_storage()
         with self._lock:
             if self._stopping:
                 raise RuntimeError("the station is shutting down")
@@ -370,7 +433,9 @@ class Orchestrator:
                 archive_root=self.data_dir,
                 frames_total=plan.frames,
                 idempotency_key=idempotency_key,
+                camera_serial=self._devices.described.get("camera", {}).get("serial"),
             )
+            self._jobs.put(job)
             if created:
                 # published under the lock, so that no worker's "running" can overtake it
                 self._publish_state(job, None, "submitted")
@@ -381,7 +446,8 @@ class Orchestrator:
     def pause(self, job_id: int, reason: str = "paused by the operator") -> JobStatus:
         """Ask the running job to pause at the next step boundary (409 unless running)."""
         with self._lock:
-            job = self.store.get_job(job_id)
+            job = self._record(job_id)
+            self._own(job)
             active = self._active if self._active and self._active.job_id == job_id else None
             if job.state is not JobState.RUNNING or active is None:
                 if job.state is JobState.PAUSED:
@@ -393,9 +459,17 @@ class Orchestrator:
         return self.status(job_id)
 
     def resume(self, job_id: int, reason: str = "resumed by the operator") -> JobStatus:
-        """Resume a paused job, or re-queue an interrupted or failed one (409 otherwise)."""
+        """Resume a paused job, or re-queue an interrupted or failed one (409 otherwise).
+
+        Raises :class:`station.store.StorageFull` (507) when the disk of the database
+        or the archives is full, :class:`station.store.StoreUnavailable` (503) when
+        the database cannot be written."""
+        self._flush_unrecorded()
         with self._lock:
-            job = self.store.get_job(job_id)
+            job = self._record(job_id)
+            self._own(job)
+            if job_id in self._unrecorded:
+                raise self._unrecorded[job_id].error
             active = self._active if self._active and self._active.job_id == job_id else None
             if active is not None and job.state in ACTIVE_STATES:
                 active.control.request_resume(reason)
@@ -403,7 +477,12 @@ class Orchestrator:
                     active.progress.pause_requested = False
                 return self.status(job_id)
             if job.state in (JobState.INTERRUPTED, JobState.FAILED):
-                requeued = self.store.transition(job_id, JobState.QUEUED, f"{reason}: queued again")
+                if self._stopping:
+                    raise RuntimeError("the station is shutting down")
+                self.check_storage()
+                requeued = self._store_transition(
+                    job_id, JobState.QUEUED, f"{reason}: queued again"
+                )
                 self._publish_state(requeued, job.state, f"{reason}: queued again")
                 self._queue.append(job_id)
                 self._changed.notify_all()
@@ -414,8 +493,12 @@ class Orchestrator:
     def cancel(self, job_id: int, reason: str = "cancelled by the operator") -> JobStatus:
         """Cancel a job: queued or interrupted at once, running or paused at the next
         step boundary (every captured frame is kept). 409 for a finished job."""
+        self._flush_unrecorded()
         with self._lock:
-            job = self.store.get_job(job_id)
+            job = self._record(job_id)
+            self._own(job)
+            if job_id in self._unrecorded:
+                raise self._unrecorded[job_id].error
             active = self._active if self._active and self._active.job_id == job_id else None
             if active is not None and job.state in ACTIVE_STATES:
                 active.control.request_cancel(reason)
@@ -424,7 +507,7 @@ class Orchestrator:
                 return self.status(job_id)
             if job.state not in (JobState.QUEUED, JobState.INTERRUPTED):
                 raise InvalidTransition(job_id, job.state, JobState.CANCELLED, "cancel")
-            cancelled = self.store.transition(job_id, JobState.CANCELLED, reason)
+            cancelled = self._store_transition(job_id, JobState.CANCELLED, reason)
             if job_id in self._queue:
                 self._queue.remove(job_id)
             self._publish_state(cancelled, job.state, reason)
@@ -434,15 +517,21 @@ class Orchestrator:
     # ------------------------------------------------------------------ queries
 
     def status(self, job_id: int) -> JobStatus:
-        """The job's state and progress (:class:`station.store.JobNotFound` if unknown)."""
-        job = self.store.get_job(job_id)
-        # one atomic read of the reference, no lock: status is polled from the HTTP
-        # server's event loop and must not wait while the worker stores a result
+        """The job's state and progress (:class:`station.store.JobNotFound` if unknown).
+
+        Polled from the HTTP server's event loop: it reads memory only (the job's
+        row from :class:`station.job_cache.JobRecordCache`, the active job's live
+        progress; the store only on a cache miss) and takes no lock that the
+        worker holds while it stores a result.
+        """
+        job = self._record(job_id, cached=True)
+        # one atomic read of the reference, no lock (see above)
         active = self._active
         if active is not None and active.job_id != job_id:
             active = None
         if active is None or job.state not in ACTIVE_STATES:
-            return self._status_of(job, self.store.step_count(job_id))
+            steps = self._jobs.step_count(job, lambda: self.store.step_count(job_id))
+            return self._status_of(job, steps)
         with self._progress_lock:
             p = active.progress
             return self._status_of(
@@ -470,6 +559,9 @@ class Orchestrator:
             frames_total=job.frames_total,
             last_error=job.last_error,
             has_result=job.has_result,
+            station_id=job.station_id,
+            camera_serial=job.camera_serial,
+            archive_url=job.archive_url,
             **live,
         )
 
@@ -480,7 +572,7 @@ class Orchestrator:
 
     def record(self, job_id: int) -> JobRecord:
         """The job's stored row, with its result (or a failed calibration's partial one)."""
-        return self.store.get_job(job_id, with_result=True)
+        return self._record(job_id, with_result=True)
 
     def transitions(self, job_id: int) -> list[Transition]:
         """Every state change of the job with its time and reason."""
@@ -499,7 +591,7 @@ class Orchestrator:
         without a result (its ``last_error`` says why; a failed calibration's
         partial result is in :meth:`record`).
         """
-        job = self.store.get_job(job_id, with_result=True)
+        job = self._record(job_id, with_result=True)
         if job.state is JobState.SUCCEEDED and job.result is not None:
             return job.result
         if job.state is JobState.SUCCEEDED:
@@ -515,16 +607,18 @@ class Orchestrator:
         raise ResultNotReady(job_id, job.state, why)
 
     def archive_dir(self, job_id: int) -> Path:
-        """The job's ``lfcal-sweep/1`` directory (it may not exist before the job starts)."""
-        return Path(self.store.get_job(job_id).archive_dir)
+        """The job's ``lfcal-sweep/1`` directory (it may not exist before the job starts):
+        the local one, else a copy fetched from object storage (:mod:`station.archive_source`)."""
+        job = self.store.get_job(job_id)
+        return self._archives.local_dir(job.archive_dir, job.archive_url)
 
     def frame_path(self, job_id: int, index: int) -> Path:
         """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
-        job = self.store.get_job(job_id)
         step = self.store.step(job_id, index)
         if step is None:
+            self.store.get_job(job_id)  # JobNotFound first
             raise FrameNotFound(job_id, index)
-        return Path(job.archive_dir) / (step.file or frame_file_name(index))
+        return self.archive_dir(job_id) / (step.file or frame_file_name(index))
 
     def read_frame(self, job_id: int, index: int) -> Any:
         """A recorded frame as counts (``uint16``, ``(height, width)``), e.g. for a preview.
@@ -564,7 +658,7 @@ class Orchestrator:
         SSE recipe: subscribe first, then replay from Last-Event-ID, then forward
         live events, skipping ``step`` events whose id was already replayed.
         """
-        job = self.store.get_job(job_id)
+        job = self._record(job_id)
         events = []
         total = job.frames_total
         steps = self.store.steps(job_id)
@@ -610,7 +704,7 @@ class Orchestrator:
         deadline = time.monotonic() + timeout_s
         with self._changed:
             while True:
-                job = self.store.get_job(job_id)
+                job = self._record(job_id)
                 if job.state in wanted:
                     break
                 left = deadline - time.monotonic()
@@ -668,6 +762,11 @@ class Orchestrator:
                     out["rail_mm"] = active.progress.rail_mm
             return out
         try:
+            if state.devices is None and time.monotonic() - self._last_open >= REOPEN_INTERVAL_S:
+                try:  # closed after a fault: are they back?
+                    self._ensure_devices()
+                except Exception:  # noqa: BLE001 - reported below
+                    pass
             if state.devices is None:
                 return {"connected": False, "busy": False, "error": state.error}
             try:
@@ -682,6 +781,7 @@ class Orchestrator:
         """Open the devices if they are not (hardware thread only)."""
         state = self._devices
         if state.devices is None:
+            self._last_open = time.monotonic()
             try:
                 state.devices = self._factory()
                 state.error = None
@@ -734,33 +834,193 @@ class Orchestrator:
     ) -> JobRecord:
         with self._lock:
             before = self.store.get_job(job_id).state
-            job = self.store.transition(job_id, state, reason, **kwargs)
+            job = self._store_transition(job_id, state, reason, **kwargs)
             # state events leave in the order the store records the transitions
             self._publish_state(job, before, reason)
             self._changed.notify_all()
         return job
 
+    def _store_transition(
+        self, job_id: int, state: JobState, reason: str, **kwargs: Any
+    ) -> JobRecord:
+        """``store.transition`` (every change of a job row goes through here or
+        ``submit``), keeping :attr:`_jobs` up to date before the change is announced."""
+        try:
+            job = self.store.transition(job_id, state, reason, **kwargs)
+        except InvalidTransition:
+            raise  # nothing changed
+        except BaseException:
+            self._jobs.forget(job_id)  # stored or not: read it again
+            raise
+        self._jobs.put(job)
+        return job
+
     def _run_transition(self, job_id: int, state: JobState, reason: str) -> None:
         self._transition(job_id, state, reason)
 
+    # ------------------------------------------------------------------ supervision
+
+    def _record(self, job_id: int, *, with_result: bool = False, cached: bool = False) -> JobRecord:
+        """The job as clients must see it: the store's row, unless its final state
+        could not be stored (then that state, from memory). ``cached``: the row
+        from :attr:`_jobs` (without the result), read from the store on a miss."""
+        if cached and not with_result:
+            # another station's jobs (a shared PostgreSQL database) change behind our back
+            job = self._jobs.record(job_id, lambda: self.store.get_job(job_id), self.store.owns)
+        else:
+            job = self.store.get_job(job_id, with_result=with_result)
+        pending = self._unrecorded.get(job_id)
+        if pending is None:
+            return job
+        return dataclasses.replace(
+            job, state=pending.state, last_error=pending.reason, updated_at=pending.at
+        )
+
+    def _end_unrecorded(self, job_id: int, state: JobState, reason: str, error: Exception) -> None:
+        """The store refused the job's final state: keep it in memory (and say so)."""
+        text = (
+            f"{reason}; the job store cannot record this ({error}): the job is interrupted "
+            "(resumable once the store can be written again)"
+        )
+        with self._lock:
+            entry = Unrecorded(JobState.INTERRUPTED, text, time.time(), error)
+            self._unrecorded[job_id] = entry
+            self.hub.publish(
+                JobEvent(
+                    job_id,
+                    "state",
+                    None,
+                    {
+                        "state": entry.state.value,
+                        "from": state.value if state in ACTIVE_STATES else "running",
+                        "reason": text,
+                        "last_error": text,
+                        "recorded": False,
+                    },
+                )
+            )
+            self._changed.notify_all()
+        self.supervisor.note("worker", f"job {job_id}: {text}")
+
+    def _flush_unrecorded(self) -> bool:
+        """Store the final states the store refused earlier; True when none is left."""
+        with self._lock:
+            pending = dict(self._unrecorded)
+        if not pending or self._store is None:
+            return True
+        for job_id, entry in pending.items():
+            try:
+                job = self.store.get_job(job_id)
+                if job.state in ACTIVE_STATES:
+                    self._store_transition(
+                        job_id, entry.state, entry.reason, last_error=entry.reason
+                    )
+            except StoreUnavailable:
+                return False
+            except (StoreError, KeyError):
+                pass  # the job is gone or no longer active: nothing left to record
+            with self._lock:
+                self._unrecorded.pop(job_id, None)
+                self._changed.notify_all()
+        return True
+
+    def check_storage(self) -> None:
+        """Raise :class:`station.store.StorageFull` when the disk holding the database
+        or the archives has less free space than one frame needs."""
+        error = storage_problem(self.config, self._db_path, self.data_dir)
+        if error is not None:
+            raise error
+
+    def health(self) -> dict[str, Any]:
+        """What is down, and whether the station can run jobs (JSON-ready; see
+        :meth:`station.supervisor.Supervisor.health`)."""
+        return self.supervisor.health(self)
+
+    @property
+    def db_path(self) -> Path:
+        """The job database file (PostgreSQL: the data directory, for the disk check)."""
+        return self._db_path
+
+    @property
+    def analysis_pool(self) -> AnalysisPool | None:
+        """The analysis worker processes (None: no analysis)."""
+        return self._pool
+
+    @property
+    def ownership_problem(self) -> str | None:
+        """Why this station no longer holds its ownership of the job database (a shared
+        PostgreSQL database restarted and another process took it); None while held."""
+        problem = getattr(self._ownership, "problem", None)
+        return None if problem is None else str(problem)
+
+    @property
+    def worker_alive(self) -> bool:
+        """The hardware worker thread is running."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def unrecorded_jobs(self) -> dict[int, str]:
+        """Jobs whose final state the store refused (job id -> reason)."""
+        with self._lock:
+            return {k: v.reason for k, v in self._unrecorded.items()}
+
+    @property
+    def active_job(self) -> int | None:
+        """The job the hardware worker holds, or None."""
+        active = self._active
+        return None if active is None else active.job_id
+
+    # ------------------------------------------------------------------ the worker
+
     def _next_job(self) -> JobRecord | None:
-        """Wait for the next queued job and mark it running (under the lock)."""
+        """Wait for the next queued job and mark it running (under the lock).
+
+        A job the store cannot mark running stays at the head of the queue (retried
+        every second), as does every queued job while the station has lost its
+        ownership of a shared job database; one that cannot be started for another
+        reason fails.
+        """
         with self._changed:
             while True:
                 if self._stopping:
                     return None
-                while self._queue:
-                    job_id = self._queue.popleft()
-                    job = self.store.get_job(job_id)
-                    if job.state is not JobState.QUEUED:
+                retry = bool(self._unrecorded)
+                lost = self.ownership_problem
+                if self._queue and lost is not None:
+                    # another process may hold this station now: start nothing until it is back
+                    retry = True
+                    if not self._held_for_ownership:
+                        self._held_for_ownership = True
+                        self.supervisor.note(
+                            "worker", f"queued jobs wait until the ownership is back: {lost}"
+                        )
+                elif lost is None:
+                    self._held_for_ownership = False
+                while self._queue and lost is None:
+                    job_id = self._queue[0]
+                    try:
+                        job = self.store.get_job(job_id)
+                        if job.state is not JobState.QUEUED:
+                            self._queue.popleft()
+                            continue
+                        steps = self.store.step_count(job_id)
+                        reason = (
+                            "started"
+                            if steps == 0 and job.last_error is None
+                            else f"resumed with {steps} of {job.frames_total} frames recorded"
+                        )
+                        job = self._store_transition(
+                            job_id, JobState.RUNNING, reason, clear_error=True
+                        )
+                    except StoreUnavailable as exc:
+                        self.supervisor.note("worker", f"cannot start job {job_id}: {exc}")
+                        retry = True
+                        break
+                    except Exception as exc:  # noqa: BLE001 - the job fails, the queue goes on
+                        self._queue.popleft()
+                        self._fail_unstartable(job_id, exc)
                         continue
-                    steps = self.store.step_count(job_id)
-                    reason = (
-                        "started"
-                        if steps == 0 and job.last_error is None
-                        else f"resumed with {steps} of {job.frames_total} frames recorded"
-                    )
-                    job = self.store.transition(job_id, JobState.RUNNING, reason, clear_error=True)
+                    self._queue.popleft()
                     self._active = _Active(
                         job_id,
                         JobControl(),
@@ -769,9 +1029,24 @@ class Orchestrator:
                     self._changed.notify_all()
                     self._publish_state(job, JobState.QUEUED, reason)
                     return job
-                self._changed.wait()
+                self._changed.wait(1.0 if retry else None)
+                if retry:
+                    self._flush_unrecorded()
+
+    def _fail_unstartable(self, job_id: int, exc: BaseException) -> None:
+        reason = f"the job could not be started: internal error: {type(exc).__name__}: {exc}"
+        try:
+            self._transition(job_id, JobState.FAILED, reason, last_error=reason)
+        except InvalidTransition:
+            try:
+                self._transition(job_id, JobState.CANCELLED, reason)
+            except Exception:  # noqa: BLE001 - nothing more to record
+                pass
+        except Exception:  # noqa: BLE001 - the store refuses: nothing more to record
+            pass
 
     def _worker(self) -> None:
+        """The hardware worker: supervised, it only returns when the station stops."""
         if self._open_at_start:
             with self._hw_lock:
                 try:
@@ -780,12 +1055,34 @@ class Orchestrator:
                     pass
         self._devices_tried.set()
         while True:
-            job = self._next_job()
-            if job is None:
-                return
+            try:
+                if not self._serve_one():
+                    return
+            except Exception as exc:  # noqa: BLE001 - the supervisor: never die, say why
+                self.supervisor.note("worker", f"recovered from {type(exc).__name__}: {exc}")
+                with self._changed:
+                    self._changed.wait(1.0)
+
+    def _serve_one(self) -> bool:
+        """Run the next job to a final state; False when the station stops."""
+        self._flush_unrecorded()
+        job = self._next_job()
+        if job is None:
+            return False
+        try:
             with self._hw_lock:
                 outcome = self._run(job)
-            self._finish(job.id, outcome)
+        except Exception as exc:  # noqa: BLE001 - SweepRun.execute catches; this is a bug
+            message = f"internal error: {type(exc).__name__}: {exc}"
+            outcome = Outcome(JobState.FAILED, message, last_error=message)
+        self._finish(job.id, outcome)
+        if outcome.devices_broken:
+            with self._hw_lock:  # learn at once whether the devices can be reopened
+                try:
+                    self._ensure_devices()
+                except Exception:  # noqa: BLE001 - reported by devices_info
+                    pass
+        return True
 
     def _run(self, job: JobRecord) -> Outcome:
         assert self._active is not None
@@ -795,6 +1092,12 @@ class Orchestrator:
         except Exception as exc:  # noqa: BLE001
             msg = f"the devices cannot be opened: {exc}"
             return Outcome(JobState.FAILED, msg, last_error=msg)
+        serial = self._devices.described.get("camera", {}).get("serial")
+        if serial and serial != job.camera_serial:
+            try:
+                self.store.set_camera_serial(job.id, str(serial))
+            finally:
+                self._jobs.forget(job.id)  # the row changed: read it again
         timings: list[StepTiming] = []
         with self._lock:
             self._timings[job.id] = timings
@@ -811,10 +1114,13 @@ class Orchestrator:
             control=active.control,
             timings=timings,
             principal_point_cache=self._pp_cache,
+            row_changed=self._jobs.forget,
+            ownership_problem=lambda: self.ownership_problem,
         )
         return SweepRun(job, devices, ctx).execute()
 
     def _finish(self, job_id: int, outcome: Outcome) -> None:
+        """Store the run's final state; if the store refuses, keep it in memory."""
         if outcome.devices_broken:
             self._close_devices()
         kwargs: dict[str, Any] = {}
@@ -824,6 +1130,15 @@ class Orchestrator:
             kwargs["result"] = outcome.result
         try:
             self._transition(job_id, outcome.state, outcome.reason, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - the job must not stay running
+            state = JobState.RUNNING
+            try:
+                state = self.store.get_job(job_id).state
+            except Exception:  # noqa: BLE001
+                pass
+            if state in ACTIVE_STATES:
+                why = outcome.last_error or outcome.reason
+                self._end_unrecorded(job_id, state, why, exc)
         finally:
             with self._lock:
                 self._active = None

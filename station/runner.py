@@ -47,7 +47,6 @@ from calibration.archive import (
 )
 from calibration.pipeline import (
     CalibrationError,
-    FrameAnalyzer,
     SweepGeometry,
 )
 from drivers.camera import CameraSettings, Roi, bit_depth
@@ -57,7 +56,7 @@ from station.config import StationConfig
 from station.events import JobEvent, LiveProgress, analysis_payload
 from station.faults import Action, check_frame, rule_for
 from station.recovery import VerifyReport, reconcile
-from station.store import JobRecord, JobState, JobStore, StepRecord
+from station.store import JobRecord, JobState, JobStore, StepRecord, StoreUnavailable
 from station.sweep import RequestInvalid, SweepPlan, SweepRequest, plan_sweep
 from station.writer import CapturedFrame, FrameWriter
 
@@ -86,11 +85,13 @@ class JobFailed(Exception):
 
 
 class StopRequested(Exception):
-    """Cancel or shut-down reached a step boundary."""
+    """Cancel, shut-down or a lost ownership reached a step boundary; ``error``: the
+    reason is also the job's ``last_error`` (a fault, not an operator's request)."""
 
-    def __init__(self, state: JobState, reason: str) -> None:
+    def __init__(self, state: JobState, reason: str, *, error: bool = False) -> None:
         self.state = state
         self.reason = reason
+        self.error = error
         super().__init__(reason)
 
 
@@ -177,21 +178,17 @@ class JobControl:
 # --------------------------------------------------------------------------- geometry
 
 
-def principal_point_px(config: StationConfig, roi: Roi | None) -> tuple[float, float]:
+def principal_point_px(
+    config: StationConfig, roi: Roi | None, camera_pp: tuple[float, float] | None = None
+) -> tuple[float, float]:
     """Principal point (px) in the coordinates of the delivered frames.
 
-    From ``camera.principal_point_px`` if configured, else the simulated scene's
-    (placed by the simulator), else the sensor centre; minus the ROI offset.
+    From ``camera.principal_point_px`` if configured, else the camera's own
+    (``camera_pp``: :attr:`drivers.camera.CameraInfo.principal_point_px`, known to a
+    simulated camera), else the sensor centre; minus the ROI offset.
     """
     cam = config.camera
-    pp = cam.principal_point_px
-    if pp is None and cam.backend == "simulated":
-        from station.sim_scene import scene_from_preset
-
-        scene = scene_from_preset(
-            cam.preset, width=cam.width, height=cam.height, principal_point_px=None
-        )
-        pp = scene.camera.sensor.pp
+    pp = cam.principal_point_px if cam.principal_point_px is not None else camera_pp
     if pp is None:
         w, h = cam.sensor_size_px
         pp = ((w - 1) / 2.0, (h - 1) / 2.0)
@@ -227,6 +224,12 @@ class RunContext:
     control: JobControl
     timings: list[StepTiming] = field(default_factory=list)
     principal_point_cache: dict[str, tuple[float, float]] = field(default_factory=dict)
+    row_changed: Callable[[int], None] = lambda job_id: None
+    """Called with the job's id after the run changed its row in the store without a
+    transition (a recorded step moves ``updated_at``; see :mod:`station.job_cache`)."""
+    ownership_problem: Callable[[], str | None] = lambda: None
+    """Why the station no longer owns its jobs on a shared database (None: it does);
+    checked at every step boundary (:mod:`station.ownership`)."""
 
 
 class SweepRun:
@@ -264,7 +267,8 @@ class SweepRun:
             return self._finish()
         except StopRequested as stop:
             self._wind_down()
-            return Outcome(stop.state, self._with_count(stop.reason))
+            reason = self._with_count(stop.reason)
+            return Outcome(stop.state, reason, last_error=reason if stop.error else None)
         except JobFailed as exc:
             self._wind_down()
             message = self._with_count(exc.message)
@@ -275,6 +279,10 @@ class SweepRun:
                 result=exc.result,
                 devices_broken=exc.devices_broken,
             )
+        except StoreUnavailable as exc:  # e.g. a pause the store could not record
+            self._wind_down()
+            message = self._with_count(f"the job store cannot be written: {exc}")
+            return Outcome(JobState.FAILED, message, last_error=message)
         except Exception as exc:  # noqa: BLE001 - the job must end in a truthful state
             self._wind_down()
             message = self._with_count(f"internal error: {type(exc).__name__}: {exc}")
@@ -307,6 +315,14 @@ class SweepRun:
             raise StopRequested(JobState.CANCELLED, control.cancel_reason)
         if self.sink is not None:
             self._check_sink()
+        lost = self.ctx.ownership_problem()
+        if lost is not None:  # another process may now recover and resume this very job
+            raise StopRequested(
+                JobState.INTERRUPTED,
+                f"{lost}; the sweep stopped so that two processes never write one job "
+                "(resume it once the station has its lock back)",
+                error=True,
+            )
         if control.pause:
             self._pause()
             return True
@@ -319,6 +335,8 @@ class SweepRun:
             raise self._storage_failure(error)
 
     def _storage_failure(self, error: BaseException) -> JobFailed:
+        if isinstance(error, StoreUnavailable):
+            return JobFailed(f"a written frame cannot be recorded in the job store: {error}")
         if isinstance(error, DiskFull):
             return JobFailed(f"disk full, nothing written past the last frame: {error}")
         return JobFailed(f"cannot write the archive {self.job_dir}: {error}")
@@ -411,7 +429,9 @@ class SweepRun:
                 except DeviceError as again:
                     raise JobFailed(
                         f"{what}: {exc}; recovery ({rule.action.value}) failed: {again}",
-                        devices_broken=isinstance(again, PortUnavailable),
+                        # a camera that cannot be reopened: reopen everything for the next job
+                        devices_broken=isinstance(again, PortUnavailable)
+                        or rule.action is Action.RECONNECT,
                     ) from again
 
     # ------------------------------------------------------------------ 1. prepare
@@ -455,7 +475,10 @@ class SweepRun:
         store = self.ctx.store
         if (self.job_dir / "sweep.json").is_file():
             try:
-                self.report = reconcile(store, self.job.id, self.job_dir)
+                try:
+                    self.report = reconcile(store, self.job.id, self.job_dir)
+                finally:
+                    self.ctx.row_changed(self.job.id)
                 self.writer = SweepWriter.resume(self.job_dir)
             except (ArchiveError, OSError) as exc:
                 raise JobFailed(
@@ -472,7 +495,7 @@ class SweepRun:
         key = f"{roi.width}x{roi.height}+{roi.offset_x}+{roi.offset_y}"
         pp = self.ctx.principal_point_cache.get(key)
         if pp is None:
-            pp = principal_point_px(self.cfg, roi)
+            pp = principal_point_px(self.cfg, roi, self.dev.camera.info().principal_point_px)
             self.ctx.principal_point_cache[key] = pp
         header = self.cfg.manifest_header(
             width=roi.width, height=roi.height, bit_depth=depth, principal_point_px=pp
@@ -486,6 +509,9 @@ class SweepRun:
                 "exposure_us": settings.exposure_us,
                 "gain": settings.gain,
                 "roi": [roi.width, roi.height, roi.offset_x, roi.offset_y],
+                "black_level": settings.black_level,
+                "trigger": settings.trigger,
+                "flat_field": settings.flat_field,
             },
         }
         if self.dev.bench is not None:
@@ -565,7 +591,7 @@ class SweepRun:
         if self.plan.calibrate and self.ctx.pool is not None:
             self._phase("white", "fitting the MLA grid")
             try:
-                analyzer = FrameAnalyzer.from_white(self.geometry, white)
+                analyzer = self.ctx.pool.fit_analyzer(self.geometry, white)
             except ValueError as exc:
                 raise JobFailed(
                     f"the white image is unusable, the MLA grid fit failed: {exc} -- check that "
@@ -593,6 +619,7 @@ class SweepRun:
 
     def _on_written(self, step: StepRecord) -> None:
         """Writer thread: a frame is on disk and recorded."""
+        self.ctx.row_changed(self.job.id)  # before the step is announced
         if self.session is not None:
             self.session.submit(step.index, step.actual_mm, self.job_dir / step.file)
         progress = self.ctx.progress
@@ -696,7 +723,13 @@ class SweepRun:
             captured_at=frame.host_timestamp_ns / 1e9 if frame.host_timestamp_ns else time.time(),
             extra={
                 "frame_id": int(frame.frame_id),
-                "exposure_us": frame.exposure_us,
+                # what the camera applied for this frame: exposure, gain (+ its feature),
+                # black level, DeviceTemperature, trigger, flat-field state
+                **{
+                    k: v
+                    for k, v in frame.metadata().items()
+                    if k not in ("pixel_format", "bit_depth")
+                },
             },
         )
         return captured, t1 - t0, t2 - t1, grab_s[0]

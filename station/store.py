@@ -1,12 +1,27 @@
-"""Persistent job store: a real SQLite database file in WAL mode.
+"""Persistent job store: a SQLite database file in WAL mode, or a PostgreSQL database.
 
-Tables::
+Tables (schema version :data:`station.schema.HEAD`, created and upgraded by the
+alembic migrations of :mod:`station.schema` when the store opens)::
 
     jobs         id, state, request (JSON), created_at, updated_at, result (JSON),
-                 last_error, archive_dir, frames_total, idempotency_key
+                 last_error, archive_dir, frames_total, idempotency_key,
+                 station_id, camera_serial, archive_url, archive_uploaded_at
     transitions  job_id, from_state, to_state, at, reason   (every state change)
     steps        job_id, idx, commanded_mm, actual_mm, file, sha256,
                  started_at, captured_at, written_at, summary (JSON)
+    results      job_id, version, software_version, created_at, source, result (JSON)
+                 (results computed again later: :mod:`station.result_versions`)
+
+**Backends.** ``JobStore("data/lfcal.sqlite3")`` opens a SQLite file
+(:class:`station.db.SQLitePool`), ``JobStore("postgresql://user@host/db")`` a
+PostgreSQL database (:class:`station.db_postgres.PostgresPool`); the store's SQL
+is the same for both (the PostgreSQL pool takes the ``?`` placeholders).
+
+**Stations.** Every job carries the ``station_id`` of the store that created it
+(``[storage] station_id``) and the serial of the camera that took its frames. Several
+stations may share one PostgreSQL database: each lists, recovers and runs only its
+own jobs (``list_jobs(station=...)``; :mod:`station.ownership` keeps two processes
+of one station apart), and every station can read every job (the fleet view).
 
 Job life cycle (:data:`ALLOWED_TRANSITIONS`)::
 
@@ -24,23 +39,40 @@ change the table does not allow raises :class:`InvalidTransition` (the web
 layer answers 409) and changes nothing.
 
 Times are Unix epoch seconds (float). Positions are mm. The store is
-thread-safe: each thread gets its own connection (WAL lets readers run while
-one writer commits); writes use ``BEGIN IMMEDIATE`` and ``synchronous=FULL``, so
-a step that :meth:`JobStore.record_step` returned for is on disk.
+thread-safe: every operation borrows a connection from a bounded pool
+(:class:`station.db.SQLitePool`, at most 8 connections whatever the number of
+threads) and gives it back at once, so no connection outlives its use (WAL
+lets readers run while one writer commits); writes use ``BEGIN IMMEDIATE`` and
+``synchronous=FULL``, so a step that :meth:`JobStore.record_step` returned for
+is on disk. A database that cannot be written raises
+:class:`station.db.StoreUnavailable`, a full disk :class:`station.db.StorageFull`
+(with the path and the free space); :attr:`JobStore.health` keeps the last
+such error until an operation succeeds again.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
-import threading
 import time
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
+
+from station.db import (
+    ConnectionPool,
+    SQLitePool,
+    StorageFull,
+    StoreError,
+    StoreHealth,
+    StoreUnavailable,
+    UniqueViolation,
+)
+from station.schema import HEAD as SCHEMA_HEAD
+from station.schema import ensure_schema
 
 
 class JobState(StrEnum):
@@ -84,10 +116,6 @@ ACTIVE_STATES = frozenset({JobState.RUNNING, JobState.PAUSED})
 
 
 # --------------------------------------------------------------------------- errors
-
-
-class StoreError(Exception):
-    """Base class of the job store's errors."""
 
 
 class JobNotFound(StoreError, KeyError):
@@ -161,6 +189,11 @@ class JobRecord:
         archive_dir: directory of the job's ``lfcal-sweep/1`` archive.
         frames_total: number of rail positions of the sweep.
         idempotency_key: the client's key, if one was given.
+        station_id: the station that owns the job (runs, recovers and resumes it).
+        camera_serial: serial number of the camera that took (or will take) the frames.
+        archive_url: where the archive is uploaded (``s3://...``), or None.
+        archive_uploaded_at: Unix time (s) the final archive was uploaded and
+            verified, or None.
     """
 
     id: int
@@ -174,6 +207,10 @@ class JobRecord:
     frames_total: int
     idempotency_key: str | None = None
     has_result: bool = False
+    station_id: str = ""
+    camera_serial: str | None = None
+    archive_url: str | None = None
+    archive_uploaded_at: float | None = None
 
 
 @dataclass(frozen=True)
@@ -216,45 +253,8 @@ class StepRecord:
     summary: dict[str, Any] | None = None
 
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS jobs (
-    id              INTEGER PRIMARY KEY AUTOINCREMENT,
-    state           TEXT NOT NULL,
-    request         TEXT NOT NULL,
-    created_at      REAL NOT NULL,
-    updated_at      REAL NOT NULL,
-    result          TEXT,
-    last_error      TEXT,
-    archive_dir     TEXT NOT NULL,
-    frames_total    INTEGER NOT NULL,
-    idempotency_key TEXT UNIQUE
-);
-CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
-CREATE TABLE IF NOT EXISTS transitions (
-    seq        INTEGER PRIMARY KEY AUTOINCREMENT,
-    job_id     INTEGER NOT NULL REFERENCES jobs(id),
-    from_state TEXT,
-    to_state   TEXT NOT NULL,
-    at         REAL NOT NULL,
-    reason     TEXT NOT NULL
-);
-CREATE INDEX IF NOT EXISTS transitions_job ON transitions(job_id, seq);
-CREATE TABLE IF NOT EXISTS steps (
-    job_id       INTEGER NOT NULL REFERENCES jobs(id),
-    idx          INTEGER NOT NULL,
-    commanded_mm REAL NOT NULL,
-    actual_mm    REAL NOT NULL,
-    file         TEXT NOT NULL,
-    sha256       TEXT NOT NULL,
-    started_at   REAL NOT NULL,
-    captured_at  REAL NOT NULL,
-    written_at   REAL NOT NULL,
-    summary      TEXT,
-    PRIMARY KEY (job_id, idx)
-);
-"""
-
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = SCHEMA_HEAD
+"""The schema version this software writes (:data:`station.schema.HEAD`)."""
 
 
 def _dumps(value: Any) -> str:
@@ -269,67 +269,112 @@ class JobStore:
     """The job database (see the module docstring).
 
     Args:
-        path: the SQLite file (created with its directory if missing).
+        path: the SQLite file (created with its directory if missing), a
+            ``postgresql://`` URL, or an open :class:`station.db.ConnectionPool`.
         busy_timeout_s: how long a writer waits for another writer's lock (s).
+        pool_size: most connections open at once.
+        station_id: the station whose jobs this store creates (``[storage]
+            station_id``); a SQLite store also adopts the jobs of a database made
+            before stations existed (``station_id = ''``).
+        archive_url: the object-storage prefix of this station's archives
+            (``s3://bucket/prefix``), or None: each new job's archive then goes to
+            ``archive_url/station_id/job-...``.
+
+    Raises :class:`station.schema.SchemaTooNew` for a database of a newer
+    software version, :class:`station.db.StoreUnavailable` when it cannot be
+    reached or written.
     """
 
-    def __init__(self, path: str | Path, *, busy_timeout_s: float = 10.0) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._busy_ms = int(busy_timeout_s * 1000)
-        self._local = threading.local()
-        self._all: list[sqlite3.Connection] = []
-        self._all_lock = threading.Lock()
-        self._closed = False
-        conn = self._conn()
-        conn.executescript(_SCHEMA)  # idempotent (IF NOT EXISTS); commits by itself
-        conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+    def __init__(
+        self,
+        path: str | Path | ConnectionPool,
+        *,
+        busy_timeout_s: float = 10.0,
+        pool_size: int = 8,
+        station_id: str | None = None,
+        archive_url: str | None = None,
+    ) -> None:
+        from station.db_postgres import PostgresPool, is_postgres_url
+
+        self._db: ConnectionPool
+        if isinstance(path, str | Path) and is_postgres_url(path):
+            self._db = PostgresPool(str(path), size=pool_size, busy_timeout_s=busy_timeout_s)
+            self.path = Path(self._db.path)
+        elif isinstance(path, str | Path):
+            self._db = SQLitePool(path, size=pool_size, busy_timeout_s=busy_timeout_s)
+            self.path = Path(path)
+        else:
+            self._db = path
+            self.path = Path(getattr(path, "path", ""))
+        self.postgres = hasattr(self._db, "url")
+        self.station_id = station_id if station_id is not None else default_station_id()
+        self.archive_url = archive_url.rstrip("/") if archive_url else None
+        try:
+            ensure_schema(self._db)
+            if not self.postgres:
+                with self._db.write() as conn:
+                    conn.execute(
+                        "UPDATE jobs SET station_id = ? WHERE station_id = ''", (self.station_id,)
+                    )
+        except BaseException:
+            self._db.close()
+            raise
 
     # ------------------------------------------------------------------ connections
 
-    def _conn(self) -> sqlite3.Connection:
-        if self._closed:
-            raise StoreError(f"job store {self.path} is closed")
-        conn: sqlite3.Connection | None = getattr(self._local, "conn", None)
-        if conn is None:
-            conn = sqlite3.connect(
-                self.path,
-                timeout=self._busy_ms / 1000,
-                isolation_level=None,
-                check_same_thread=False,
-            )
-            conn.execute(f"PRAGMA busy_timeout = {self._busy_ms}")
-            conn.execute("PRAGMA journal_mode = WAL")
-            conn.execute("PRAGMA synchronous = FULL")
-            conn.execute("PRAGMA foreign_keys = ON")
-            conn.row_factory = sqlite3.Row
-            self._local.conn = conn
-            with self._all_lock:
-                self._all.append(conn)
-        return conn
+    @property
+    def pool(self) -> ConnectionPool:
+        """The connection pool (its size, for tests and diagnostics)."""
+        return self._db
 
-    @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
+    @property
+    def health(self) -> StoreHealth:
+        """The last read or write error, if no operation succeeded since."""
+        return self._db.health
+
+    def _write(self) -> Any:
         """A write transaction (``BEGIN IMMEDIATE`` ... ``COMMIT``; rolled back on error)."""
-        conn = self._conn()
-        conn.execute("BEGIN IMMEDIATE")
-        try:
-            yield conn
-        except BaseException:
-            conn.execute("ROLLBACK")
-            raise
-        conn.execute("COMMIT")
+        return self._db.write()
+
+    def _read(self) -> Any:
+        return self._db.read()
+
+    @property
+    def own_station(self) -> str | None:
+        """The station whose jobs this process recovers, runs and uploads: this store's
+        station on a shared PostgreSQL database; None (every job) on a SQLite file,
+        which only one station ever uses (its file lock)."""
+        return self.station_id if self.postgres else None
+
+    def stations_holding_advisory_lock(self, classid: int) -> set[str]:
+        """PostgreSQL: the jobs' station ids for which a database session holds the
+        advisory lock ``(classid, hashtext(station_id))`` (:mod:`station.ownership`)."""
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT DISTINCT j.station_id FROM jobs j JOIN pg_locks l "
+                "ON l.locktype = 'advisory' AND l.granted AND l.classid = ? "
+                "AND l.objid = hashtext(j.station_id)::oid AND l.objsubid = 2",
+                (classid,),
+            ).fetchall()
+        return {str(r["station_id"]) for r in rows}
+
+    def owns(self, job: JobRecord) -> bool:
+        """This station may run, pause, resume and cancel ``job``."""
+        return self.own_station is None or job.station_id == self.own_station
+
+    def probe_write(self) -> None:
+        """Write the database once (SQLite: its header's ``user_version``; PostgreSQL:
+        the schema version row, unchanged): raises :class:`StoreUnavailable` /
+        :class:`StorageFull` if it cannot be written."""
+        with self._db.write() as conn:
+            if self.postgres:
+                conn.execute("UPDATE alembic_version SET version_num = version_num")
+            else:
+                conn.execute("PRAGMA user_version = 2")
 
     def close(self) -> None:
         """Close every connection (the store cannot be used afterwards)."""
-        self._closed = True
-        with self._all_lock:
-            conns, self._all = self._all, []
-        for conn in conns:
-            try:
-                conn.close()
-            except sqlite3.Error:
-                pass
+        self._db.close()
 
     def __enter__(self) -> JobStore:
         return self
@@ -347,13 +392,15 @@ class JobStore:
         frames_total: int,
         idempotency_key: str | None = None,
         reason: str = "submitted",
+        camera_serial: str | None = None,
     ) -> tuple[JobRecord, bool]:
-        """Store a new queued job; return ``(job, created)``.
+        """Store a new queued job of this store's station; return ``(job, created)``.
 
-        The archive directory is ``archive_root/job-000123-20250101T120000`` (UTC). With an
+        The archive directory is ``archive_root/job-000123-20250101T120000`` (UTC), and
+        with object storage its URL ``archive_url/STATION/job-000123-...``. With an
         ``idempotency_key`` already used for the same request, the existing job is
-        returned with ``created=False``; with a different request
-        :class:`IdempotencyConflict` is raised.
+        returned with ``created=False``; with a different request (or by another
+        station) :class:`IdempotencyConflict` is raised.
         """
         req_text = _dumps(dict(request))
         now = time.time()
@@ -364,18 +411,38 @@ class JobStore:
                     (idempotency_key,),
                 ).fetchone()
                 if row is not None:
-                    if _loads(row["request"]) != json.loads(req_text):
+                    if (
+                        _loads(row["request"]) != json.loads(req_text)
+                        or row["station_id"] != self.station_id
+                    ):
                         raise IdempotencyConflict(idempotency_key, row["id"])
                     return _job(row), False
             cur = db.execute(
                 "INSERT INTO jobs (state, request, created_at, updated_at, archive_dir, "
-                "frames_total, idempotency_key) VALUES (?, ?, ?, ?, '', ?, ?)",
-                (JobState.QUEUED.value, req_text, now, now, frames_total, idempotency_key),
+                "frames_total, idempotency_key, station_id, camera_serial) "
+                "VALUES (?, ?, ?, ?, '', ?, ?, ?, ?) RETURNING id",
+                (
+                    JobState.QUEUED.value,
+                    req_text,
+                    now,
+                    now,
+                    frames_total,
+                    idempotency_key,
+                    self.station_id,
+                    camera_serial,
+                ),
             )
-            job_id = int(cur.lastrowid or 0)
+            job_id = int(cur.fetchone()["id"])
             stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(now))
-            archive = Path(archive_root) / f"job-{job_id:06d}-{stamp}"
-            db.execute("UPDATE jobs SET archive_dir = ? WHERE id = ?", (str(archive), job_id))
+            name = f"job-{job_id:06d}-{stamp}"
+            archive = Path(archive_root) / name
+            url = (
+                None if self.archive_url is None else f"{self.archive_url}/{self.station_id}/{name}"
+            )
+            db.execute(
+                "UPDATE jobs SET archive_dir = ?, archive_url = ? WHERE id = ?",
+                (str(archive), url, job_id),
+            )
             db.execute(
                 "INSERT INTO transitions (job_id, from_state, to_state, at, reason) "
                 "VALUES (?, NULL, ?, ?, ?)",
@@ -391,26 +458,48 @@ class JobStore:
         whether there is one): status polling must not parse megabytes of JSON.
         """
         columns = _JOB_COLUMNS_WITH_RESULT if with_result else _JOB_COLUMNS
-        row = self._conn().execute(f"SELECT {columns} FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute(f"SELECT {columns} FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             raise JobNotFound(job_id)
         return _job(row)
 
     def list_jobs(
-        self, *, states: set[JobState] | frozenset[JobState] | None = None, limit: int | None = None
+        self,
+        *,
+        states: set[JobState] | frozenset[JobState] | None = None,
+        limit: int | None = None,
+        station: str | None = None,
+        camera_serial: str | None = None,
+        since: float | None = None,
     ) -> list[JobRecord]:
-        """Jobs in id order (oldest first), optionally only those in ``states``
-        (without their results, see :meth:`get_job`)."""
+        """Jobs in id order (oldest first), optionally only those in ``states``, of
+        ``station``, of the camera ``camera_serial``, created at or after ``since``
+        (Unix s); without their results (see :meth:`get_job`)."""
         sql = f"SELECT {_JOB_COLUMNS} FROM jobs"
+        where: list[str] = []
         args: list[Any] = []
         if states:
-            sql += f" WHERE state IN ({', '.join('?' * len(states))})"
+            where.append(f"state IN ({', '.join('?' * len(states))})")
             args.extend(s.value for s in states)
+        if station is not None:
+            where.append("station_id = ?")
+            args.append(station)
+        if camera_serial is not None:
+            where.append("camera_serial = ?")
+            args.append(camera_serial)
+        if since is not None:
+            where.append("created_at >= ?")
+            args.append(float(since))
+        if where:
+            sql += " WHERE " + " AND ".join(where)
         sql += " ORDER BY id"
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
-        return [_job(r) for r in self._conn().execute(sql, args).fetchall()]
+        with self._read() as db:
+            rows = db.execute(sql, args).fetchall()
+        return [_job(r) for r in rows]
 
     def transition(
         self,
@@ -452,6 +541,8 @@ class JobStore:
             if result_json is not None:
                 sets.append("result = ?")
                 args.append(result_json)
+            if to_state is JobState.QUEUED:  # resumed: more frames to upload
+                sets.append("archive_uploaded_at = NULL")
             args.append(job_id)
             db.execute(f"UPDATE jobs SET {', '.join(sets)} WHERE id = ?", args)
             db.execute(
@@ -482,13 +573,58 @@ class JobStore:
             if cur.rowcount == 0:
                 raise JobNotFound(job_id)
 
+    def set_camera_serial(self, job_id: int, serial: str | None) -> None:
+        """Record the serial of the camera that takes the job's frames."""
+        with self._write() as db:
+            db.execute("UPDATE jobs SET camera_serial = ? WHERE id = ?", (serial, job_id))
+
+    def mark_archive_uploaded(
+        self, job_id: int, at: float | None = None, *, as_of: JobRecord | None = None
+    ) -> bool:
+        """Record that every file of the job's final archive is uploaded and verified.
+
+        With ``as_of`` (the job as read when the upload pass began) the mark is
+        only written if the job has not changed since (same state and
+        ``updated_at``): a job resumed during the pass has new frames to upload.
+        Returns whether the mark was written.
+        """
+        sql = "UPDATE jobs SET archive_uploaded_at = ? WHERE id = ?"
+        args: list[Any] = [time.time() if at is None else at, job_id]
+        if as_of is not None:
+            sql += " AND state = ? AND updated_at = ?"
+            args += [as_of.state.value, as_of.updated_at]
+        with self._write() as db:
+            cur = db.execute(sql, args)
+            return bool(cur.rowcount)
+
+    def jobs_to_upload(self) -> list[JobRecord]:
+        """This station's jobs with an archive URL whose archive is not completely
+        uploaded yet (oldest first)."""
+        sql = f"SELECT {_JOB_COLUMNS} FROM jobs WHERE archive_url IS NOT NULL"
+        sql += " AND archive_uploaded_at IS NULL"
+        args: list[Any] = []
+        if self.own_station is not None:
+            sql += " AND station_id = ?"
+            args.append(self.own_station)
+        with self._read() as db:
+            rows = db.execute(sql + " ORDER BY id", args).fetchall()
+        return [_job(r) for r in rows]
+
+    def stations(self) -> list[dict[str, Any]]:
+        """Every station with jobs in the database: id, jobs, active jobs, last change."""
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT station_id, COUNT(*) AS jobs, MAX(updated_at) AS last_change "
+                "FROM jobs GROUP BY station_id ORDER BY station_id"
+            ).fetchall()
+        return [dict(r) for r in rows]
+
     def transitions(self, job_id: int) -> list[Transition]:
         """Every state change of the job, oldest first."""
-        rows = (
-            self._conn()
-            .execute("SELECT * FROM transitions WHERE job_id = ? ORDER BY seq", (job_id,))
-            .fetchall()
-        )
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT * FROM transitions WHERE job_id = ? ORDER BY seq", (job_id,)
+            ).fetchall()
         return [
             Transition(
                 job_id=r["job_id"],
@@ -523,8 +659,12 @@ class JobStore:
                         None if step.summary is None else _dumps(step.summary),
                     ),
                 )
-            except sqlite3.IntegrityError as exc:
-                if "UNIQUE" in str(exc) or "PRIMARY KEY" in str(exc):
+            except (sqlite3.IntegrityError, UniqueViolation) as exc:
+                if (
+                    isinstance(exc, UniqueViolation)
+                    or "UNIQUE" in str(exc)
+                    or "PRIMARY KEY" in str(exc)
+                ):
                     raise DuplicateStep(
                         f"job {step.job_id}: step {step.index} is already recorded"
                     ) from None
@@ -555,36 +695,36 @@ class JobStore:
         if after is not None:
             sql += " AND idx > ?"
             args.append(after)
-        rows = self._conn().execute(sql + " ORDER BY idx", args).fetchall()
+        with self._read() as db:
+            rows = db.execute(sql + " ORDER BY idx", args).fetchall()
         return [_step(r) for r in rows]
 
     def step(self, job_id: int, index: int) -> StepRecord | None:
         """One recorded step, or None."""
-        row = (
-            self._conn()
-            .execute("SELECT * FROM steps WHERE job_id = ? AND idx = ?", (job_id, index))
-            .fetchone()
-        )
+        with self._read() as db:
+            row = db.execute(
+                "SELECT * FROM steps WHERE job_id = ? AND idx = ?", (job_id, index)
+            ).fetchone()
         return None if row is None else _step(row)
 
     def step_count(self, job_id: int) -> int:
         """Number of recorded steps of the job."""
-        row = (
-            self._conn()
-            .execute("SELECT COUNT(*) AS n FROM steps WHERE job_id = ?", (job_id,))
-            .fetchone()
-        )
+        with self._read() as db:
+            row = db.execute(
+                "SELECT COUNT(*) AS n FROM steps WHERE job_id = ?", (job_id,)
+            ).fetchone()
         return int(row["n"])
 
 
 _JOB_COLUMNS = (
     "id, state, request, created_at, updated_at, last_error, archive_dir, frames_total, "
-    "idempotency_key, result IS NOT NULL AS has_result"
+    "idempotency_key, result IS NOT NULL AS has_result, station_id, camera_serial, "
+    "archive_url, archive_uploaded_at"
 )
 _JOB_COLUMNS_WITH_RESULT = _JOB_COLUMNS + ", result"
 
 
-def _job(row: sqlite3.Row) -> JobRecord:
+def _job(row: Any) -> JobRecord:
     """A record from a row of ``_JOB_COLUMNS`` (plus ``result`` if it was selected)."""
     return JobRecord(
         id=int(row["id"]),
@@ -598,10 +738,19 @@ def _job(row: sqlite3.Row) -> JobRecord:
         frames_total=int(row["frames_total"]),
         idempotency_key=row["idempotency_key"],
         has_result=bool(row["has_result"]),
+        station_id=row["station_id"],
+        camera_serial=row["camera_serial"],
+        archive_url=row["archive_url"],
+        archive_uploaded_at=row["archive_uploaded_at"],
     )
 
 
-def _step(row: sqlite3.Row) -> StepRecord:
+def default_station_id() -> str:
+    """The station id when none is configured: ``$LFCAL_STATION_ID`` or the host name."""
+    return os.environ.get("LFCAL_STATION_ID") or os.uname().nodename or "station"
+
+
+def _step(row: Any) -> StepRecord:
     return StepRecord(
         job_id=int(row["job_id"]),
         index=int(row["idx"]),
@@ -628,6 +777,10 @@ __all__ = [
     "JobState",
     "JobStore",
     "StepRecord",
+    "StorageFull",
     "StoreError",
+    "StoreHealth",
+    "StoreUnavailable",
     "Transition",
+    "default_station_id",
 ]

@@ -90,7 +90,9 @@ def test_result_json_has_the_documented_keys(result: dict) -> None:
         "mla",
         "frames",
         "estimates",
-        "consistency",
+        "priors",
+        "corner_agreement",
+        "camera_model",
     ):
         assert key in result
     for key in ("rail_mm", "object_distance_mm", "uncertainty_mm"):
@@ -101,16 +103,27 @@ def test_result_json_has_the_documented_keys(result: dict) -> None:
         for key in ("rail_mm", "Q", "patch_size_px", "Ls_px", "Lr_px", "La_mm"):
             assert key in frame
     assert result["uncertainty"]["a_mm"] > 0
-    assert set(result["estimates"]) >= {"esif", "global", "paper_argmin_La"}
+    assert set(result["estimates"]) >= {"sweep", "paper_route", "paper_argmin_La"}
+    for name in ("main_focal_mm", "mla_focal_mm", "rail_zero_object_distance_mm"):
+        prior = result["priors"][name]
+        assert set(prior) >= {"datasheet", "calibrated", "uncertainty", "z", "tolerance"}
+        assert prior["determined_by"] == "sweep"  # both corners in view
+    assert set(result["priors"]["L_mm"]) == {"calibrated", "uncertainty"}
     assert result["_plots"] == ["disparity.png", "focus.png"]
 
 
 def test_result_records_the_priors_it_used(sweep: Path, result: dict) -> None:
     manifest = json.loads((sweep / "sweep.json").read_text())
     inputs = result["inputs"]
-    assert inputs["optics"] == {**manifest["optics"], "lens_pitch_px": pytest.approx(80.0)}
+    # the manifest's values, with the documented default tolerances where it has none
+    assert inputs["optics"] == {
+        **manifest["optics"],
+        "lens_pitch_px": pytest.approx(80.0),
+        "main_focal_tolerance_mm": pytest.approx(0.02 * manifest["optics"]["main_focal_mm"]),
+        "mla_focal_tolerance_mm": pytest.approx(0.02 * manifest["optics"]["mla_focal_mm"]),
+    }
     assert inputs["board"] == manifest["board"]
-    assert inputs["rail"] == manifest["rail"]
+    assert inputs["rail"] == {**manifest["rail"], "zero_object_distance_tolerance_mm": 2.0}
     assert inputs["camera"]["principal_point_px"] == manifest["camera"]["principal_point_px"]
     assert (inputs["camera"]["width"], inputs["camera"]["height"]) == (2400, 800)
     assert result["software"]["name"] == "lfcal-station" and result["software"]["version"]
@@ -195,6 +208,100 @@ def test_focus_outside_the_sweep_says_extend_the_range(
     assert "focus plane at the sweep edge" in err and "extend the range" in err
     partial = json.loads((tmp_path / "partial.json").read_text())
     assert len(partial["frames"]) == 7 and all(f["Q"] for f in partial["frames"])
+
+
+def _restate(sweep: Path, out: Path, **changes: dict) -> Path:
+    """A copy of ``sweep`` whose manifest states other (data-sheet) values."""
+    shutil.copytree(sweep, out)
+    manifest = json.loads((out / "sweep.json").read_text())
+    for section, values in changes.items():
+        manifest[section].update(values)
+    (out / "sweep.json").write_text(json.dumps(manifest))
+    return out
+
+
+def test_wrong_data_sheet_values_are_replaced_by_the_sweep(
+    sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """F +2 %, f -2 %, rail zero +2 mm in the manifest: the sweep measures the true ones."""
+    truth = json.loads((sweep / "truth.json").read_text())
+    manifest = json.loads((sweep / "sweep.json").read_text())
+    optics, rail = manifest["optics"], manifest["rail"]
+    off = _restate(
+        sweep,
+        tmp_path / "off",
+        optics={
+            "main_focal_mm": optics["main_focal_mm"] * 1.02,
+            "mla_focal_mm": optics["mla_focal_mm"] * 0.98,
+            # a tight stated tolerance on F: its 2 % error is a contradiction
+            "main_focal_tolerance_mm": 0.002 * optics["main_focal_mm"],
+        },
+        rail={"zero_object_distance_mm": rail["zero_object_distance_mm"] + 2.0},
+    )
+    assert main(["calibrate", str(off), "--out", str(tmp_path / "r.json")]) == 0
+    printed = capsys.readouterr().out
+    data = json.loads((tmp_path / "r.json").read_text())
+    priors = data["priors"]
+    # twice the targets: a, b 0.1 %; F, f 0.2 %; rail zero 0.4 mm
+    assert abs(data["a_mm"] / truth["a_mm"] - 1) < 1e-3
+    assert abs(data["b_mm"] / truth["b_mm"] - 1) < 1e-3
+    assert abs(priors["main_focal_mm"]["calibrated"] / truth["optics"]["F_mm"] - 1) < 2e-3
+    assert abs(priors["mla_focal_mm"]["calibrated"] / truth["optics"]["f_mm"] - 1) < 2e-3
+    true_zero = truth["rail"]["zero_object_distance_mm"]
+    assert abs(priors["rail_zero_object_distance_mm"]["calibrated"] - true_zero) < 0.4
+    assert priors["main_focal_mm"]["datasheet"] == pytest.approx(optics["main_focal_mm"] * 1.02)
+    assert priors["main_focal_mm"]["contradicted"] and priors["main_focal_mm"]["z"] > 3
+    assert not priors["mla_focal_mm"]["contradicted"]  # 2 % off, default tolerance 2 %
+    assert any("main_focal_mm" in w and "contradicted" in w for w in data["warnings"])
+    assert "CONTRADICTED" in printed and "data sheet" in printed
+    # the paper's route trusts the wrong f: about 2 % off
+    assert abs(data["estimates"]["paper_route"]["b_mm"] / truth["b_mm"] - 1) > 0.01
+
+
+def test_impossible_data_sheet_values_name_the_prior(
+    sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    far = _restate(sweep, tmp_path / "far", optics={"main_focal_mm": 900.0})
+    assert main(["calibrate", str(far), "--out", str(tmp_path / "r.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "main_focal_mm = 900 mm" in err and len(err.splitlines()) <= 2
+    neg = _restate(sweep, tmp_path / "neg", rail={"zero_object_distance_tolerance_mm": -1.0})
+    assert main(["calibrate", str(neg)]) == 2
+    assert "rail.zero_object_distance_tolerance_mm" in capsys.readouterr().err
+
+
+def test_standard_corner_only_falls_back_to_the_priors(tmp_path: Path) -> None:
+    out = tmp_path / "standard"
+    argv = ["simulate", str(out), "--preset", "rotated", "--frames", "13", "--step-mm", "8"]
+    argv += ["--width", "900", "--height", "900", "--principal-point", "449.5,449.5"]
+    assert main(argv) == 0
+    assert main(["calibrate", str(out), "--out", str(tmp_path / "r.json")]) == 0
+    data = json.loads((tmp_path / "r.json").read_text())
+    truth = json.loads((out / "truth.json").read_text())
+    assert data["corners_found"]["reference_frames"] == 0
+    by = {k: data["priors"][k]["determined_by"] for k in ("main_focal_mm", "mla_focal_mm")}
+    assert by["main_focal_mm"] == "prior"
+    assert any("could not fix" in w and "main_focal_mm" in w for w in data["warnings"])
+    # the tolerances (2 % by default) are carried in the uncertainty of b and a
+    assert data["uncertainty"]["b_mm"] > 0.003 * data["b_mm"]
+    assert abs(data["b_mm"] - truth["b_mm"]) < 3 * data["uncertainty"]["b_mm"]
+    assert abs(data["a_mm"] - truth["a_mm"]) < 3 * data["uncertainty"]["a_mm"]
+
+
+def test_a_sweep_that_never_defocuses_gives_focus_not_determined(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "flat"
+    # rotated focuses at rail 52.37 mm: 8 frames within ±1.75 mm keep the blur under 0.1 px
+    argv = ["simulate", str(out), "--preset", "rotated", "--frames", "8", "--start-mm", "50.6"]
+    argv += ["--step-mm", "0.5", "--width", "2400", "--height", "800"]
+    assert main(argv) == 0
+    code = main(["calibrate", str(out), "--out", str(tmp_path / "partial.json")])
+    err = capsys.readouterr().err
+    assert code == 4
+    assert "focus plane not determined" in err
+    partial = json.loads((tmp_path / "partial.json").read_text())
+    assert len(partial["frames"]) == 8 and "a_mm" not in partial
 
 
 @pytest.mark.parametrize(

@@ -206,6 +206,11 @@ def test_grab_mono8_full_sensor_is_pixel_exact(
     assert (frame.exposure_us, frame.gain) == (20_000.0, 0.0)
     assert before - 1_000_000_000 < frame.host_timestamp_ns < time.time_ns() + 1_000_000_000
     assert frame.timestamp_ns > 0 and ADDRESS in frame.device
+    # DeviceTemperature is read with every frame (a GVCP read of the camera's register)
+    assert camera.info().has_temperature and frame.gain_feature == "Gain"
+    for celsius in (36.75, 44.125):
+        fake.set_temperature_c(celsius)
+        assert camera.grab(timeout_s=2.0).temperature_c == celsius
 
 
 @needs_aravis
@@ -273,7 +278,11 @@ def test_rejected_settings_change_nothing(
     with pytest.raises(InvalidSetting, match="does not fit"):
         camera.configure(CameraSettings("Mono8", roi=Roi(SENSOR, 16, 1, 0)))
     with pytest.raises(InvalidSetting, match="not supported"):
-        camera.configure(CameraSettings("Mono12Packed"))
+        camera.configure(CameraSettings("RGB8"))
+    with pytest.raises(FeatureMissing, match="no entry 'Mono12Packed'"):
+        camera.configure(CameraSettings("Mono12Packed"))  # decoded, but not offered
+    with pytest.raises(FeatureMissing, match="TriggerSource has no entry 'Line7'"):
+        camera.configure(CameraSettings("Mono8", trigger="Line7"))
     assert camera.settings() == good
     assert fake.read_register(REG_PIXEL_FORMAT) == MONO12
     frame = camera.grab(timeout_s=2.0)
@@ -398,3 +407,42 @@ def test_full_5120_sensor_frame_is_pixel_exact() -> None:
                 exact += 1
         assert not fake.errors
     assert exact >= 2
+
+
+def test_usb3_camera_by_serial_never_enables_gige_discovery(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """USB3 Vision by serial: the GigE Vision interface is disabled before Aravis looks
+    for the device, so only the USB bus is enumerated (no packet on any network)."""
+    import types
+
+    import drivers.aravis_camera as module
+
+    real = module._aravis()
+    calls: list[str] = []
+
+    class RecordingAravis:
+        def __getattr__(self, name: str) -> object:
+            return getattr(real.Aravis, name)
+
+        def disable_interface(self, name: str) -> None:
+            calls.append(f"disable {name}")
+            real.Aravis.disable_interface(name)
+
+        def enable_interface(self, name: str) -> None:
+            calls.append(f"enable {name}")
+            real.Aravis.enable_interface(name)
+
+        class Camera:
+            @staticmethod
+            def new(name: str) -> object:
+                calls.append(f"open {name}")
+                return real.Aravis.Camera.new(name)
+
+    fake_ns = types.SimpleNamespace(Aravis=RecordingAravis(), Gio=real.Gio, GLib=real.GLib)
+    monkeypatch.setattr(module, "_aravis", lambda: fake_ns)
+    camera = module.AravisCamera(serial="LFCAL-NO-SUCH-USB3", interface="usb3")
+    assert camera.label == "usb3://LFCAL-NO-SUCH-USB3"
+    with pytest.raises(CameraNotFound, match="no USB3 Vision camera 'LFCAL-NO-SUCH-USB3'"):
+        camera.open()
+    assert calls == ["disable GigEVision", "enable USB3Vision", "open LFCAL-NO-SUCH-USB3"]

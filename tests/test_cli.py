@@ -66,3 +66,24 @@ def test_sweep_with_a_vanishing_step_is_refused(
     assert code == 2
     assert "at most 2000" in capsys.readouterr().err
     assert not (root / "data").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "command"),
+    [
+        (["sweep", "--config"], "lfcal sweep"),
+        (["jobs", "--config"], "lfcal jobs"),
+        (["recalibrate", "--all", "--config"], "lfcal recalibrate"),
+        (["serve", "--config"], "lfcal serve"),
+    ],
+)
+def test_every_command_names_a_broken_config_and_its_problems(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], command: str
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[rail]\ndriver = "zaber"\nspeed = 3\n')
+    assert main([*argv, str(bad)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == f"{command}: {bad}: invalid configuration"
+    assert len(lines) > 1 and all(line.startswith("  ") for line in lines[1:])
+    assert any("rail" in line for line in lines[1:])

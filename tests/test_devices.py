@@ -193,13 +193,21 @@ def test_simulated_camera_in_front_of_real_stages(tmp_path: Path) -> None:
 
 
 def test_production_code_never_imports_drivers_sim() -> None:
-    for name in ("devices.py", "devices_cli.py", "sim_scene.py"):
-        tree = ast.parse((ROOT / "station" / name).read_text(encoding="utf-8"))
+    """No module of station/ or web/ imports drivers.sim, and none but the device
+    factory's backend table names it (the simulation is a configuration-selected backend)."""
+    for path in sorted((ROOT / "station").glob("*.py")) + sorted((ROOT / "web").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        tree = ast.parse(text)
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom):
-                assert not (node.module or "").startswith("drivers.sim"), name
-            elif isinstance(node, ast.Import):
-                assert not any(a.name.startswith("drivers.sim") for a in node.names), name
+                assert not (node.module or "").startswith("drivers.sim"), path.name
+            if isinstance(node, ast.Import):
+                assert not any(a.name.startswith("drivers.sim") for a in node.names), path.name
+        if path.name not in ("devices.py", "cli.py"):
+            assert "drivers.sim" not in text, path.name
+        # no simulation parameter in any signature or call (the CLI option only sets a key)
+        assert "sim_frame_cache=" not in text and "sim_frame_cache:" not in text, path.name
+        assert "sim_scene" not in text and "sim_cache" not in text, path.name
     code = (
         "import sys, station.devices, station.devices_cli\n"
         "loaded = [m for m in sys.modules if m.startswith('drivers.sim')]\n"
@@ -224,7 +232,7 @@ def test_devices_main_prints_the_table(tmp_path: Path) -> None:
     assert lines[0].split()[:3] == ["device", "identity", "position"]
     rows = {line.split("  ")[0].strip(): line for line in lines[2:6]}
     assert set(rows) == {"rail", "xy stage x", "xy stage y", "camera"}
-    assert "Zaber device.id" in rows["rail"] and "device 1 axis 1" in rows["rail"]
+    assert "Zaber device id 50081" in rows["rail"] and "device 1 axis 1" in rows["rail"]
     assert "unknown" in rows["rail"] and re.search(r"\bno\b", rows["rail"])  # not homed
     assert "plenoptic simulator (paper)" in rows["camera"]
     assert "600x400+0+0" in rows["camera"] and "Mono12" in rows["camera"]
@@ -390,3 +398,18 @@ def test_cti_that_does_not_load(tmp_path: Path, kind: str) -> None:
     expected = "does not exist" if kind == "deleted" else "does not load as a shared library"
     assert expected in str(error) and str(cti) in str(error)
     assert "camera.cti" in error.hint
+
+
+def test_frame_cache_is_a_key_of_the_simulated_camera(tmp_path: Path) -> None:
+    """``[camera] frame_cache``: the simulated camera keeps and reuses its renders."""
+    cache = tmp_path / "frames"
+    path = simulated_toml(tmp_path, **{r"^seed = 0": f'seed = 0\nframe_cache = "{cache}"'})
+    config = load_config(path)
+    assert config.camera.frame_cache == cache
+    with open_devices(config, emulator_speedup=SPEEDUP) as devices:
+        scene = devices.camera.scene  # type: ignore[attr-defined]
+        first = devices.camera.grab()
+        second = devices.camera.grab()  # same bench state: read from the cache
+        assert (scene.misses, scene.hits) == (1, 1)
+        np.testing.assert_array_equal(first.pixels, second.pixels)
+    assert len(list(cache.glob("*.npy"))) == 1

@@ -23,8 +23,9 @@ from calibration.mla_grid import (
     fit_mla_grid,
     micro_image_labels,
 )
-from calibration.optics import image_centre_scale
+from calibration.optics import focused_virtual_distance, image_centre_scale
 from calibration.presets import Preset, get_preset
+from calibration.shading import measure_shading
 from calibration.sim_sweep import fit_frame
 from calibration.simulator import SimCamera, render_frame
 
@@ -242,3 +243,22 @@ def test_bad_prior_raises() -> None:
         fit_mla_grid(white, lens_pitch_px=60.0, principal_point_px=cam.sensor.pp)
     with pytest.raises(ValueError, match="no microlens lattice"):
         fit_mla_grid(white, lens_pitch_px=200.0, principal_point_px=cam.sensor.pp)
+
+
+@pytest.mark.parametrize("name", ["paper", "rotated"])
+def test_the_shaded_rims_explain_the_lattice_scale_reading(name: str) -> None:
+    """The lattice reads ``(L+b)/L`` as ``1 + β(1 + (β - Q0)·η)`` (module docstring), η from
+    the white image's own shading; ``scale_se`` is the fit's statistical error."""
+    cam, white = _scene(name, 3000, 1000)
+    grid = _fit(cam, white)
+    o = cam.optics
+    beta = o.b / o.L
+    q0 = o.b / focused_virtual_distance(o.f, o.b)
+    shading = measure_shading(white, grid.image_grid, background=grid.background)
+    eta = shading.bias_coefficient(o.lens_pitch_px**2 / 12.0)
+    rim = beta * (beta - q0) * eta
+    assert rim < -5e-6  # the pull is there: it is a few pitch-1e-5
+    true_scale = image_centre_scale(o.L, o.b)
+    assert 0 < grid.scale_se < 5e-6
+    assert abs(grid.scale - (true_scale + rim)) < abs(rim) / 2
+    assert grid.to_dict()["scale_se"] == grid.scale_se

@@ -31,9 +31,9 @@ from drivers.camera_errors import (
     InvalidSetting,
 )
 from drivers.sim.bench import BenchAxis, SimulatedBench, chain_specs
+from drivers.sim.plenoptic_scene import PlenopticScene, scene_from_preset
 from drivers.sim.sim_camera import SIM_PIXEL_FORMATS, Scene, SceneState, SimulatedCamera
 from drivers.zaber import XYStage, ZaberAxis, ZaberAxisConfig, ZaberPort, open_rail, open_xy_stage
-from station.sim_scene import PlenopticScene, scene_from_preset
 
 SPEEDUP = 50.0
 ZERO_MM = 250.0

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -84,3 +85,15 @@ def test_a_failed_calibration_in_a_worker_keeps_its_partial_result(analysed: tup
     partial = info.value.partial
     assert partial is not None
     assert [f["index"] for f in partial["frames"]] == [0, 1, 2]
+
+
+def test_without_the_white_image_shading_the_micro_image_pitch_is_not_used(
+    analysed: tuple,
+) -> None:
+    # the pitch's reading needs the rim-shading correction, which needs the white's shading
+    geometry, analyzer, _, summaries = analysed
+    with_shading = combine(summaries, geometry, analyzer.grid).to_dict()
+    assert with_shading["camera_model"]["image_scale"]["used"] is True
+    bare = combine(summaries, geometry, replace(analyzer.grid, shading=None)).to_dict()
+    assert bare["camera_model"]["image_scale"] == {"measured": None, "used": False}
+    assert bare["shading_correction"] == {"applied": False}

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 from test_station_helpers import (
+    assert_calibration_matches,
     assert_complete_archive,
     assert_kept_frames,
     frame_cache,
@@ -35,7 +36,7 @@ from test_station_helpers import (
     write_config,
 )
 
-from station.config import load_config
+from station.config import load_config, with_frame_cache
 from station.orchestrator import Orchestrator
 from station.store import JobState
 
@@ -132,7 +133,7 @@ def test_kill_9_mid_sweep_then_restart_and_resume(
     assert set(in_db) <= set(on_disk) and len(on_disk) - len(in_db) <= 1
 
     station = Orchestrator(
-        config, emulator_speedup=20.0, analysis_workers=1, sim_frame_cache=cache
+        with_frame_cache(config, cache), emulator_speedup=20.0, analysis_workers=1
     ).start()
     try:
         job = station.record(1)
@@ -161,11 +162,7 @@ def test_kill_9_mid_sweep_then_restart_and_resume(
         ]
         result = station.result(1)
         t = simulated_truth(config, 20, 5.0)
-        assert result["b_mm"] == pytest.approx(t["b_mm"], rel=1e-3)
-        assert result["a_mm"] == pytest.approx(t["a_mm"], rel=1e-3)
-        assert result["focus"]["object_distance_mm"] == pytest.approx(
-            t["focus"]["object_distance_mm"], abs=2.0
-        )
+        assert_calibration_matches(result, t)
         assert len(result["frames"]) == 20
     finally:
         station.close()

@@ -4,7 +4,7 @@ The simulated station: preset ``rotated`` on a 1200×400 px sensor (the
 standard corner stays in view over the whole sweep), the emulated Zaber rail
 and XY stage on a real pty, driven by the real Zaber driver. Rendered frames
 are cached per bench state in pytest's cache directory
-(:mod:`station.sim_cache`), shared by the xdist workers and the ``kill -9``
+(``[camera] frame_cache``, :mod:`drivers.sim.frame_cache`), shared by the xdist workers and the ``kill -9``
 subprocess: the first run renders each rail position once (~1 s each), later
 runs only read them.
 """
@@ -21,10 +21,10 @@ import pytest
 from calibration.archive import SweepArchive
 from calibration.presets import get_preset, with_sweep
 from calibration.sim_sweep import fit_frame, truth
-from station.config import StationConfig, load_config
+from drivers.sim.frame_cache import CachedScene
+from drivers.sim.plenoptic_scene import scene_from_preset
+from station.config import StationConfig, load_config, with_frame_cache
 from station.orchestrator import Orchestrator
-from station.sim_cache import CachedScene
-from station.sim_scene import scene_from_preset
 from station.store import JobStore
 
 WIDTH, HEIGHT = 1200, 400
@@ -109,10 +109,9 @@ def make_station(
     """A started orchestrator on the simulated station (close it!)."""
     config = load_config(write_config(directory, **config_kwargs))
     return Orchestrator(
-        config,
+        with_frame_cache(config, cache),
         emulator_speedup=speedup,
         analysis_workers=analysis_workers,
-        sim_frame_cache=cache,
     ).start()
 
 
@@ -128,6 +127,18 @@ def simulated_truth(config: StationConfig, frames: int, step_mm: float) -> dict[
     cam = config.camera
     preset = with_sweep(get_preset(cam.preset), frames=frames, step_mm=step_mm)
     return truth(fit_frame(preset, cam.width, cam.height, cam.principal_point_px))
+
+
+def assert_calibration_matches(result: dict[str, Any], truth_: dict[str, Any]) -> None:
+    """a, b and the focus plane against the simulator: within 3σ, and near enough for a
+    20-frame test sweep (the camera comes from the sweep, no data sheet is trusted)."""
+    unc = result["uncertainty"]
+    for key in ("a_mm", "b_mm"):
+        err = result[key] - truth_[key]
+        assert abs(err) <= 3 * unc[key] and abs(err) <= 5e-3 * truth_[key], (key, err, unc[key])
+    assert result["Q"] == pytest.approx(truth_["Q"], rel=1e-3)
+    err = result["focus"]["object_distance_mm"] - truth_["focus"]["object_distance_mm"]
+    assert abs(err) <= 3 * result["focus"]["uncertainty_mm"] and abs(err) <= 2.0, err
 
 
 def assert_complete_archive(station: Orchestrator, job_id: int, frames: int) -> SweepArchive:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 from test_station_helpers import (
+    assert_calibration_matches,
     assert_complete_archive,
     assert_kept_frames,
     bench_of,
@@ -75,12 +76,7 @@ def test_full_sweep_ends_in_a_calibration_matching_the_simulator(
 
         result = station.result(job.id)
         t = simulated_truth(station.config, 20, 5.0)
-        assert result["a_mm"] == pytest.approx(t["a_mm"], rel=1e-3)
-        assert result["b_mm"] == pytest.approx(t["b_mm"], rel=1e-3)
-        assert result["Q"] == pytest.approx(t["Q"], rel=1e-3)
-        assert result["focus"]["object_distance_mm"] == pytest.approx(
-            t["focus"]["object_distance_mm"], abs=2.0
-        )
+        assert_calibration_matches(result, t)
         assert result["station"]["job_id"] == job.id
         on_disk = json.loads((station.archive_dir(job.id) / "result.json").read_text())
         assert on_disk["a_mm"] == result["a_mm"]
@@ -216,10 +212,41 @@ def test_jobs_cli_lists_and_shows_jobs(station: Orchestrator) -> None:
     out = io.StringIO()
     with redirect_stdout(out):
         assert jobs_main(["--db", db]) == 0
-    assert f"{job.id}  succeeded" in out.getvalue() and "8/8" in out.getvalue()
+    row = next(line.split() for line in out.getvalue().splitlines()[1:])
+    assert row[0] == str(job.id) and row[2].startswith("SIM-") and row[3:5] == ["succeeded", "8/8"]
+    assert row[1] == station.store.station_id
     out = io.StringIO()
     with redirect_stdout(out):
         assert jobs_main(["--db", db, "--json", str(job.id)]) == 0
     data = json.loads(out.getvalue())
     assert [t["to"] for t in data["transitions"]] == ["queued", "running", "succeeded"]
     assert jobs_main(["--db", db, "--state", "nonsense"]) == 2
+
+
+def test_manifest_records_the_camera_state_of_every_frame(station: Orchestrator) -> None:
+    """Per frame: DeviceTemperature, exposure and gain actually applied, trigger, flat field."""
+
+    def on_white(event: JobEvent) -> None:  # devices open, no frame taken yet
+        if event.type == "phase" and event.data.get("phase") == "white":
+            bench_of(station).camera.sensor_temperature_c = 41.25
+
+    def warm_up(event: JobEvent) -> None:  # the sensor warms up during the sweep
+        bench_of(station).camera.sensor_temperature_c = 42.5
+
+    station.add_listener(on_white)
+    on_step(station, 3, warm_up)
+    job = station.submit(SHORT)
+    done = station.wait_for(job.id, END, timeout_s=60)
+    assert done.state is JobState.SUCCEEDED, done.last_error
+    manifest = json.loads((station.archive_dir(job.id) / "sweep.json").read_text())
+    frames = manifest["frames"]
+    assert len(frames) == 8
+    temperatures = [f["temperature_c"] for f in frames]
+    assert temperatures[0] == 41.25 and temperatures[-1] == 42.5
+    assert set(temperatures) == {41.25, 42.5} and temperatures == sorted(temperatures)
+    exposure = station.config.camera.exposure_us
+    for f in frames:
+        assert (f["exposure_us"], f["gain"], f["gain_feature"]) == (exposure, 0.0, "Gain")
+        assert (f["trigger"], f["flat_field"]) == ("software", "off")
+    header = manifest["station"]["camera"]
+    assert (header["trigger"], header["flat_field"]) == ("software", "off")

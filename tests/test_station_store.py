@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -180,3 +181,49 @@ def test_readers_and_writers_in_threads(store: JobStore, tmp_path: Path) -> None
         t.join(60)
     assert not errors
     assert store.step_count(job.id) == 200
+
+
+def _open_fds() -> int:
+    return len(list(Path("/proc/self/fd").iterdir()))
+
+
+def test_thread_churn_cannot_leak_connections(tmp_path: Path) -> None:
+    """500 short-lived threads (as a server's thread pool replaces its threads) use the
+    store: at most ``pool_size`` connections are ever open, and the descriptors of the
+    process are the same before and after."""
+    store = JobStore(tmp_path / "jobs.sqlite3", pool_size=4)
+    job, _ = store.create_job(REQUEST, archive_root=tmp_path, frames_total=10)
+    try:
+        with contextlib.ExitStack() as stack:  # fill the pool: 4 connections lent at once
+            for _ in range(4):
+                stack.enter_context(store.pool.read())
+        assert store.health.open_connections == 4
+        before = _open_fds()
+        peak = 0
+        for _ in range(50):
+            threads = [threading.Thread(target=store.step_count, args=(job.id,)) for _ in range(10)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(30)
+            peak = max(peak, store.health.open_connections)
+        assert peak <= 4
+        assert _open_fds() == before
+    finally:
+        store.close()
+    assert store.health.open_connections == 0
+
+
+def test_a_full_disk_and_an_io_error_are_named(tmp_path: Path) -> None:
+    from station.db import StorageFull, StoreUnavailable, sqlite_error
+
+    full = sqlite3.OperationalError("database or disk is full")
+    full.sqlite_errorcode = 13  # type: ignore[attr-defined]
+    error = sqlite_error(full, tmp_path / "jobs.sqlite3", "write")
+    assert isinstance(error, StorageFull) and "bytes free" in str(error)
+    assert str(tmp_path) in str(error) and error.free_bytes is not None
+    io = sqlite3.OperationalError("disk I/O error")
+    io.sqlite_errorcode = 10  # type: ignore[attr-defined]
+    error = sqlite_error(io, tmp_path / "jobs.sqlite3", "write")
+    assert type(error) is StoreUnavailable and "cannot be written" in str(error)
+    assert "check the disk" in str(error)

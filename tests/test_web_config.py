@@ -71,7 +71,11 @@ def test_a_device_that_is_down_gives_503_and_jobs_fail_with_the_reason(
     assert "a device is down" in body["message"] and "127.0.0.1" in body["message"]
     assert body["context"]["devices"]["connected"] is False
     health = c.get(f"{API}/healthz")
-    assert health.status_code == 200 and health.json()["devices"] == "down"
+    assert health.status_code == 503  # a device is down: the station cannot run jobs
+    report = health.json()
+    assert report["devices"] == "down" and report["status"] == "degraded"
+    assert not report["can_run_jobs"]
+    assert any(p.startswith("devices: ") and "127.0.0.1" in p for p in report["problems"])
 
     job = c.post(f"{API}/jobs", json={"calibrate": False}, headers=keyed())
     assert job.status_code == 202  # the station retries opening the devices for the job

@@ -122,6 +122,14 @@ def test_a_run_started_from_the_page_shows_progress_and_the_result(
     assert text(browser, "#res-focus-u td.num") == f"{focus['object_distance_mm']:.3f}"
     assert text(browser, "#res-focus-rail td.num") == f"{focus['rail_mm']:.3f}"
     assert text(browser, "#res-a td:nth-child(3)").startswith("± ")
+    # the data-sheet values against the sweep (issue 11)
+    assert text(browser, "#res-L td.num") == f"{result['L_mm']:.4f}"
+    for key in ("main_focal_mm", "mla_focal_mm", "rail_zero_object_distance_mm"):
+        prior = result["priors"][key]
+        cells = browser.find_elements(By.CSS_SELECTOR, f"#prior-{key} td")
+        assert cells[1].text == f"{prior['datasheet']:.4f}"
+        assert cells[3].text == f"{prior['calibrated']:.4f}"
+        assert cells[6].text in ("ok", "data sheet used", "CONTRADICTED")
 
     # the La(u) plot was fed by the event stream
     plotted = browser.find_element(By.ID, "la-plot").get_attribute("data-points")
@@ -199,3 +207,90 @@ def test_opening_the_page_during_a_run_follows_that_run(
         )
     WebDriverWait(browser, 30).until(lambda d: text(d, "#job-state") == "cancelled")
     assert text(browser, "#job-phase") == ""
+
+
+SCREENSHOTS = Path(__file__).resolve().parents[1] / "out" / "screenshots"
+
+
+def _data(browser: WebDriver, element_id: str, name: str) -> int:
+    return int(browser.find_element(By.ID, element_id).get_attribute(f"data-{name}") or 0)
+
+
+def test_live_frame_with_corners_edge_spread_plot_devices_and_a_url_per_job(
+    browser: WebDriver, server: ServerProcess
+) -> None:
+    """The operator sees the latest frame with the corners the analysis found, the edge
+    spread per frame (the quantity that decides the focus plane) with the fitted defocus
+    model once the result exists, the devices panel; the job's URL survives a reload."""
+    open_page(browser, server)
+    set_field(browser, "settle_s", "0.2")
+    browser.find_element(By.ID, "start-button").click()
+    WebDriverWait(browser, 120, poll_frequency=0.1).until(
+        lambda d: _data(d, "frame-view", "corners") > 0
+    )
+    job_id = int(text(browser, "#job-id"))
+    assert browser.current_url == f"{server.url}/?job={job_id}"
+    assert text(browser, "#job-link").endswith(f"/?job={job_id}")
+    # the overlay shows exactly the corners the API reports for that frame (frame number,
+    # corner count and caption read in one script: the view moves on as new frames are
+    # analysed, so separate reads may see two different frames)
+    frame, shown, caption = browser.execute_script(
+        "const c = document.getElementById('frame-view');"
+        "return [Number(c.dataset.frame), Number(c.dataset.corners),"
+        " document.getElementById('frame-caption').textContent];"
+    )
+    corners = server.client.get(f"/api/v1/jobs/{job_id}/frames/{frame}/corners").json()
+    assert corners["analysed"] and corners["width"] == 2000 and corners["height"] == 500
+    n = len(corners["standard"]) + len(corners["reference"])
+    assert n > 0 and shown == n
+    assert caption.startswith(f"frame {frame}, ")
+    assert f"{len(corners['standard'])} standard (green)" in caption
+    # the view is a downscaled frame (2000x500 -> 640x160)
+    width, height = browser.execute_script(
+        "const c = document.getElementById('frame-view'); return [c.width, c.height];"
+    )
+    assert (width, height) == (640, 160)
+
+    WebDriverWait(browser, 120, poll_frequency=0.1).until(
+        lambda d: _data(d, "width-plot", "model-points") > 0
+    )
+    result = server.client.get(f"/api/v1/jobs/{job_id}/result").json()
+    assert _data(browser, "width-plot", "points") == sum(
+        f["edge_spread_px"] is not None for f in result["frames"]
+    )
+    assert _data(browser, "width-plot", "model-points") == sum(
+        v is not None for v in result["curves"]["edge_spread_model_px"]
+    )
+    assert f"{result['focus']['object_distance_mm']:.2f} mm" in text(browser, "#width-note")
+    assert _data(browser, "la-plot", "points") >= 8
+    # the last frame is the one on view once the sweep is over
+    WebDriverWait(browser, 30).until(lambda d: _data(d, "frame-view", "frame") == 9)
+
+    # the devices panel (the simulated bench: homed stages, the sensor's temperature)
+    WebDriverWait(browser, 30).until(lambda d: "homed" in text(d, "#dev-rail"))
+    assert "mm" in text(browser, "#dev-rail") and "homed" in text(browser, "#dev-xy")
+    devices = server.client.get("/api/v1/devices").json()
+    assert f"{devices['camera']['temperature_c']:.1f} °C" in text(browser, "#dev-camera")
+
+    links = {
+        a.text: a.get_attribute("href") for a in browser.find_elements(By.CSS_SELECTOR, "#links a")
+    }
+    assert links["calibration report (HTML)"] == f"{server.url}/api/v1/jobs/{job_id}/report.html"
+
+    browser.set_window_size(1200, 2400)
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    shot = SCREENSHOTS / "operator.png"
+    assert browser.save_screenshot(str(shot)) and shot.stat().st_size > 10_000
+
+    # reload (or open the shared URL): the same job, its result and plots come back
+    browser.get(f"{server.url}/?job={job_id}")
+    WebDriverWait(browser, 60).until(lambda d: text(d, "#job-state") == "succeeded")
+    assert text(browser, "#job-id") == str(job_id)
+    WebDriverWait(browser, 60, poll_frequency=0.1).until(
+        lambda d: (
+            _data(d, "width-plot", "model-points") > 0
+            and _data(d, "width-plot", "points") == 10
+            and _data(d, "frame-view", "corners") > 0
+        )
+    )
+    assert text(browser, "#res-b td.num") == f"{result['b_mm']:.5f}"

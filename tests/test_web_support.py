@@ -5,7 +5,7 @@ enough that both the standard and the reference corner stay in view, so La(u)
 is measured; the emulated Zaber rail and XY stage on a real pty behind the real
 driver; a 10-frame sweep 30..75 mm around the focus plane (rail 52.4 mm).
 Rendered frames are cached in pytest's cache directory (shared with the
-station tests, :mod:`station.sim_cache`): the first run renders them (~2 s
+station tests, :mod:`drivers.sim.frame_cache`): the first run renders them (~2 s
 each), later runs read them, and a sweep takes a few seconds.
 
 Servers run for real: :class:`ServerProcess` is ``python -m web.server`` (what
@@ -188,9 +188,12 @@ class ServerProcess:
         keys: str = KEY,
         analysis_workers: int | None = 1,
         start_timeout_s: float = 60.0,
+        wrap: list[str] | None = None,
     ) -> None:
         self.log_path = config.with_name("server.log")
-        args = [
+        if self.log_path.exists():  # a restart on the same configuration: keep both logs
+            self.log_path = config.with_name(f"server-{time.time_ns()}.log")
+        args = list(wrap or []) + [
             sys.executable,
             "-m",
             "web.server",
@@ -271,11 +274,20 @@ class ServerProcess:
 class InProcessServer:
     """uvicorn serving ``app`` from a thread on a free port of 127.0.0.1 (stop it!)."""
 
-    def __init__(self, app: Any, start_timeout_s: float = 30.0) -> None:
+    def __init__(self, app: Any, start_timeout_s: float = 30.0, limits: Any = None) -> None:
+        from web.http_limits import DEFAULT_LIMITS
+        from web.server import uvicorn_config
+
         self.sock = socket.socket()
         self.sock.bind(("127.0.0.1", 0))
-        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
-        config = uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=2)
+        self.port = int(self.sock.getsockname()[1])
+        self.url = f"http://127.0.0.1:{self.port}"
+        config = uvicorn_config(
+            app,
+            log_level="warning",
+            limits=limits or DEFAULT_LIMITS,
+            timeout_graceful_shutdown=2,
+        )
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(
             target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True

@@ -140,3 +140,17 @@ def test_standalone_process_serves_until_ctrl_c() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_firmware_6_option() -> None:
+    thread, stop, urls, codes = run_in_thread(["--pty", "--firmware", "6", "--devices", "2"])
+    try:
+        with ZaberPort(urls[0]) as port:
+            assert port.discover() == {1: "50081", 2: "50081"}  # found under "deviceid"
+            assert port.request(1, 0, "get version").data == "6.32"
+            assert port.request(1, 0, "get device.id").reject_reason == "BADCOMMAND"
+            assert port.request(1, 0, "get deviceid").data == "50081"
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)
+    assert codes == [0]

@@ -105,20 +105,47 @@ def test_target_out_of_range_is_checked_before_sending(emu: ZaberEmulator, rail:
     assert len(emu.received) == sent
 
 
-def test_soft_limits_and_speed_settings(emu: ZaberEmulator) -> None:
+def test_soft_limits_and_speed_per_move_on_firmware_7(emu: ZaberEmulator) -> None:
     config = cfg(soft_limits_mm=(10.0, 60.0), speed_mm_s=5.0, accel_mm_s2=50.0)
+    stored = (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel"))
     axis = open_rail(emu.url, config)
     try:
         assert axis.limits_mm() == AxisLimits(10.0, 60.0)
-        # 5 mm/s = 50000 microsteps/s -> 81920; 50 mm/s^2 -> 500000 microsteps/s^2 -> 82
-        assert emu.setting(1, 1, "maxspeed") == 81920
-        assert emu.setting(1, 1, "accel") == 82
         axis.home()
         with pytest.raises(errors.TargetOutOfRange):
             axis.move_abs_mm(61.0)
         assert axis.move_abs_mm(59.0) == pytest.approx(59.0)
+        # 5 mm/s = 50000 microsteps/s -> 81920; 50 mm/s^2 -> 500000 microsteps/s^2 -> 82,
+        # passed with the move (firmware >= 7.25); the stored settings are untouched
+        assert (
+            [c for c in emu.received if " move abs " in c][-1]
+            .split(":")[0]
+            .endswith("move abs 590000 81920 82")
+        )
+        assert (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel")) == stored
+        assert not any(" set maxspeed" in c or " set accel" in c for c in emu.received)
     finally:
         axis.close()
+
+
+def test_speed_settings_written_and_restored_on_firmware_6() -> None:
+    with ZaberEmulator(transport="pty", speedup=SPEEDUP, firmware=6) as emu:
+        stored = (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel"))
+        axis = open_rail(emu.url, cfg(speed_mm_s=5.0, accel_mm_s2=50.0))
+        try:
+            assert axis.firmware == (6, 32)
+            assert (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel")) == (81920, 82)
+            assert axis.changed_settings == {"maxspeed": stored[0], "accel": stored[1]}
+            axis.home()
+            assert axis.move_abs_mm(20.0) == pytest.approx(20.0)
+            assert (
+                [c for c in emu.received if " move abs " in c][-1]
+                .split(":")[0]
+                .endswith("move abs 200000")
+            )
+        finally:
+            axis.close()
+        assert (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel")) == stored
 
 
 def test_stop_from_another_thread_interrupts_the_move(emu: ZaberEmulator) -> None:

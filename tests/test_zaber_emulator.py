@@ -173,9 +173,12 @@ def test_stop_decelerates_and_sets_ni(emu: ZaberEmulator, line: Line) -> None:
     snap = emu.snapshot(1, 1)
     assert 100000 < snap.position < 900000 and "NI" in snap.flags
     assert line.ask("/1 1 warnings\n") == "@01 1 OK IDLE NI 01 NI"
-    # a new move issued while idle clears NI
-    assert line.ask("/1 1 move abs 0\n") == "@01 1 OK BUSY -- 0"
-    assert line.ask("/1 1 estop\n") == "@01 1 OK IDLE NI 0"
+    # like the firmware, NI survives a new, good move until "warnings clear"
+    assert line.ask("/1 1 move abs 0\n") == "@01 1 OK BUSY NI 0"
+    wait_for(lambda: not emu.snapshot(1, 1).busy, timeout_s=5.0)
+    assert line.ask("/1 1 get pos\n") == "@01 1 OK IDLE NI 0"
+    assert line.ask("/1 1 warnings clear\n") == "@01 1 OK IDLE -- 01 NI"
+    assert line.ask("/1 1 warnings\n") == "@01 1 OK IDLE -- 00"
 
 
 def test_warnings_clear_lists_then_clears(emu: ZaberEmulator, line: Line) -> None:

@@ -25,6 +25,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+
+from station.db import StorageFull, StoreUnavailable
 
 log = logging.getLogger("lfcal.web")
 
@@ -193,11 +196,33 @@ def _json_problem(errors: Sequence[Mapping[str, Any]]) -> str | None:
 def allowed_methods(request: Request) -> list[str]:
     """Every method some route accepts for the request's path (for ``Allow`` on 405)."""
     methods: set[str] = set()
-    for route in request.app.routes:
-        regex = getattr(route, "path_regex", None)
-        if regex is not None and regex.match(request.url.path):
-            methods |= set(getattr(route, "methods", None) or ())
+    for method in ("GET", "POST", "PUT", "PATCH", "DELETE"):
+        scope = dict(request.scope, method=method)
+        for route in request.app.router.routes:
+            if route.matches(scope)[0] is Match.FULL:
+                methods.add(method)
+                break
+    if "GET" in methods:
+        methods.add("HEAD")  # web.security.HeadAsGet
     return sorted(methods)
+
+
+def storage_error(exc: StoreUnavailable) -> ApiError:
+    """507 ``storage_full`` for a full disk, 503 ``store_unavailable`` otherwise."""
+    if isinstance(exc, StorageFull):
+        return ApiError(
+            507,
+            "storage_full",
+            str(exc),
+            context={"free_bytes": exc.free_bytes, "path": exc.path},
+        )
+    return ApiError(
+        503,
+        "store_unavailable",
+        str(exc),
+        context={"path": exc.path},
+        headers={"Retry-After": "5"},
+    )
 
 
 def install_error_handlers(app: FastAPI, *, body_fields: Sequence[str] = ()) -> None:
@@ -244,6 +269,11 @@ def install_error_handlers(app: FastAPI, *, body_fields: Sequence[str] = ()) -> 
             code = "http_error"
         return error_response(status, code, message, headers=exc.headers)
 
+    async def on_store(request: Request, exc: Exception) -> JSONResponse:
+        assert isinstance(exc, StoreUnavailable)
+        log.warning("%s %s: %s", request.method, request.url.path, exc)
+        return storage_error(exc).response()
+
     async def on_crash(request: Request, exc: Exception) -> JSONResponse:
         log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc)
         return error_response(
@@ -255,13 +285,14 @@ def install_error_handlers(app: FastAPI, *, body_fields: Sequence[str] = ()) -> 
     app.add_exception_handler(ApiError, on_api_error)
     app.add_exception_handler(RequestValidationError, on_validation)
     app.add_exception_handler(StarletteHTTPException, on_http)
+    app.add_exception_handler(StoreUnavailable, on_store)
     app.add_exception_handler(Exception, on_crash)
 
 
 def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entries for the given error statuses (all :class:`ErrorBody`)."""
     descriptions = {
-        400: "malformed JSON",
+        400: "malformed JSON (not UTF-8, not JSON, nested too deeply)",
         401: "no API key (send X-API-Key)",
         403: "API key not accepted",
         404: "unknown job, frame or resource",
@@ -269,7 +300,10 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         413: "request body too large",
         415: "the body is not JSON",
         422: "invalid request: see fields",
-        503: "a device is down or the station is not ready",
+        408: "the request head or body did not arrive in time",
+        431: "request line and headers too large, or too many header fields",
+        503: "a device is down, the job store cannot be written, or the station is stopping",
+        507: "the disk holding the job database or the archives is full (storage_full)",
     }
     return {s: {"model": ErrorBody, "description": descriptions.get(s, "error")} for s in statuses}
 
@@ -283,5 +317,6 @@ __all__ = [
     "error_responses",
     "field_message",
     "install_error_handlers",
+    "storage_error",
     "validation_fields",
 ]

@@ -18,9 +18,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.export_model import designed_patch_px as designed_patch_from_optics
 from calibration.lens_grid import LensGrid
 from calibration.plots import render_png
 from calibration.rendering import render_patches, seamless_patch_px
+from calibration.report_archive import focus_frame_index as nearest_focus_frame
 from station.config import StationConfig
 
 ZIP_CHUNK = 1 << 20
@@ -80,30 +82,29 @@ def designed_patch_px(config: StationConfig) -> float:
     without it, the microlens's thin-lens conjugate ``a = f·b/(b − f)``).
     """
     o = config.optics
-    b = o.designed_b_mm
-    if b is None:
+    if o.designed_b_mm is None:
         raise MediaError(
             "the configuration has no designed optics: set [optics] designed_b_mm "
             "(and optionally designed_a_mm) to render with the designed patch size"
         )
-    a = (
-        o.designed_a_mm
-        if o.designed_a_mm is not None
-        else o.mla_focal_mm * b / (b - o.mla_focal_mm)
-    )
-    return (b / a) * (o.mla_pitch_mm / o.pixel_pitch_mm)
+    try:
+        return designed_patch_from_optics(
+            b_mm=o.designed_b_mm,
+            a_mm=o.designed_a_mm,
+            f_mm=o.mla_focal_mm,
+            D_mm=o.mla_pitch_mm,
+            delta_mm=o.pixel_pitch_mm,
+        )
+    except ValueError as exc:
+        raise MediaError(f"impossible designed optics: {exc}") from None
 
 
 def focus_frame_index(result: dict[str, Any]) -> int:
     """The frame whose rail position is nearest the focus plane (else the middle frame)."""
-    frames = [f for f in result.get("frames", []) if isinstance(f.get("index"), int)]
-    if not frames:
-        raise MediaError("the result lists no frames")
-    focus = (result.get("focus") or {}).get("rail_mm")
-    if not isinstance(focus, int | float):
-        return int(frames[len(frames) // 2]["index"])
-    best = min(frames, key=lambda f: abs(float(f.get("rail_mm") or np.inf) - focus))
-    return int(best["index"])
+    try:
+        return nearest_focus_frame(result)
+    except ValueError as exc:
+        raise MediaError(str(exc)) from None
 
 
 def image_grid(result: dict[str, Any]) -> tuple[LensGrid, float, float]:

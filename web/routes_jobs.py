@@ -3,9 +3,10 @@
 Handlers are plain functions (run in the server's thread pool): the station's
 methods are thread-safe and return quickly. ``GET /jobs/{id}``, the route that
 operators and scripts poll, is a coroutine run on the event loop itself: the
-status is a memory read plus one indexed SQLite read (p99 about 1 ms during a
-sweep), and skipping the thread-pool hop keeps its p99 latency under 50
-concurrent pollers low (``bench/bench_web.py``).
+status is a memory read, serialised once per change (:class:`web.fast_status.StatusBodies`),
+and its plain successful case is answered by :class:`web.fast_status.FastStatus`
+before the router (``bench/bench_web.py``); this handler answers the rest (404 ...)
+and documents the route.
 """
 
 # No ``from __future__ import annotations``: FastAPI needs the per-station body
@@ -17,11 +18,20 @@ from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
 from pydantic import BaseModel
 
 from station.orchestrator import Orchestrator
+from station.ownership import live_stations, station_alive
 from station.store import JobNotFound, JobState
 from web.errors import ApiError, error_responses
-from web.schemas import CalibrationResult, JobId, JobList, JobOut
+from web.fast_status import StatusBodies
+from web.schemas import (
+    CalibrationResult,
+    JobId,
+    JobList,
+    JobOut,
+    ResultVersionList,
+    ResultVersionOut,
+)
 from web.security import check_key
-from web.station_api import API, job_out, station_errors, status_response
+from web.station_api import API, job_out, station_errors
 
 IdempotencyKey = Annotated[
     str | None,
@@ -56,7 +66,7 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         status_code=202,
         response_model=JobOut,
         dependencies=write,
-        responses=error_responses(400, 401, 403, 409, 413, 415, 422, 503),
+        responses=error_responses(400, 401, 403, 408, 409, 413, 415, 422, 503, 507),
         summary="Start a calibration run (queue a sweep)",
     )
     def create_job(
@@ -68,7 +78,9 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         """Queue a sweep; 202 with ``Location`` of the job. Every field is optional.
 
         With an ``Idempotency-Key`` already used for the same sweep, the existing job is
-        returned (202); for a different sweep 409.
+        returned (202); for a different sweep 409. 507 (``storage_full``) when the disk
+        holding the job database or the archives is full; 503 when the database cannot
+        be written or the station is stopping.
         """
         station = station_of(request)
         data: dict[str, Any] = {} if body is None else body.model_dump(exclude_none=True)
@@ -93,7 +105,7 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         response_model=JobList,
         dependencies=read,
         responses=error_responses(401, 403, 422),
-        summary="List jobs (optionally by state)",
+        summary="List jobs (optionally by state, station, camera)",
     )
     def list_jobs(
         request: Request,
@@ -102,16 +114,39 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
             Query(description="only jobs in this state (repeatable)"),
         ] = None,
         limit: Annotated[int, Query(ge=1, le=1000, description="at most this many (newest)")] = 100,
+        station_id: Annotated[
+            str | None,
+            Query(
+                alias="station",
+                min_length=1,
+                max_length=64,
+                description="only jobs of this station (stations sharing one database)",
+            ),
+        ] = None,
+        camera_serial: Annotated[
+            str | None,
+            Query(min_length=1, max_length=200, description="only jobs of this camera"),
+        ] = None,
     ) -> JobList:
-        """Jobs oldest first; the newest ``limit`` of them."""
+        """Jobs of every station sharing the database (the fleet view), oldest first;
+        the newest ``limit`` of them, each with ``station_alive``: whether its
+        station's process is running."""
         station = station_of(request)
-        records = station.store.list_jobs(states=set(state) if state else None)[-limit:]
+        with station_errors():
+            records = station.store.list_jobs(
+                states=set(state) if state else None,
+                station=station_id,
+                camera_serial=camera_serial,
+            )[-limit:]
+            live = live_stations(station.store)
         out = []
         for record in records:
             try:
-                out.append(job_out(station.status(record.id)))
+                job = job_out(station.status(record.id))
             except KeyError:  # vanished meanwhile (never in practice: jobs are not deleted)
                 continue
+            job.station_alive = station_alive(station.store, record.station_id, live)
+            out.append(job)
         return JobList(jobs=out)
 
     @router.get(
@@ -123,13 +158,19 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
     )
     async def get_job(request: Request, job_id: JobId) -> Response:
         """State, frames done/total, rail position, ETA, last error."""
-        return status_response(station_of(request), job_id)
+        bodies: StatusBodies = request.app.state.status_bodies
+        with station_errors():
+            body = bodies.body(job_id)
+        return Response(body, media_type="application/json")
 
     def _action(name: str, summary: str, doc: str) -> None:
         def handler(request: Request, job_id: JobId) -> JobOut:
             station = station_of(request)
             with station_errors():
-                status = getattr(station, name)(job_id)
+                try:
+                    status = getattr(station, name)(job_id)
+                except RuntimeError as exc:  # shutting down
+                    raise ApiError(503, "station_stopping", str(exc)) from None
             return job_out(status)
 
         handler.__name__ = f"{name}_job"
@@ -140,7 +181,7 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
             methods=["POST"],
             response_model=JobOut,
             dependencies=write,
-            responses=error_responses(400, 401, 403, 404, 409, 413, 415, 422),
+            responses=error_responses(400, 401, 403, 404, 408, 409, 413, 415, 422, 503, 507),
             summary=summary,
         )
 
@@ -173,6 +214,39 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         with station_errors():
             result = station_of(request).result(job_id)
         return CalibrationResult.model_validate(result)
+
+    @router.get(
+        "/jobs/{job_id}/results",
+        response_model=ResultVersionList,
+        dependencies=read,
+        responses=error_responses(401, 403, 404, 422),
+        summary="Every version of the job's result (the station's and each recalibration's)",
+    )
+    def get_result_versions(
+        request: Request,
+        job_id: JobId,
+        software_version: Annotated[
+            str | None,
+            Query(min_length=1, max_length=100, description="only results of this version"),
+        ] = None,
+        with_results: Annotated[
+            bool, Query(description="include each version's result JSON")
+        ] = True,
+    ) -> ResultVersionList:
+        """Version 0 is the station's own result; ``lfcal recalibrate`` adds 1, 2, ...
+        with the software version and date; none replaces another."""
+        from station.result_versions import result_versions
+
+        with station_errors():
+            versions = result_versions(
+                station_of(request).store,
+                job_id,
+                with_results=with_results,
+                software_version=software_version,
+            )
+        return ResultVersionList(
+            versions=[ResultVersionOut.model_validate(v.to_dict()) for v in versions]
+        )
 
     return router
 

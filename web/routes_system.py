@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request
+from fastapi.responses import JSONResponse
 
 from calibration.version import software_version
 from station.orchestrator import Orchestrator
-from station.store import ACTIVE_STATES, JobState
+from station.store import ACTIVE_STATES, JobState, StoreError
 from web.errors import ApiError, error_responses
 from web.schemas import DevicesOut, Health
 from web.security import check_key
@@ -81,17 +82,47 @@ def build_system_router(*, read_key: bool) -> APIRouter:
             )
         return DevicesOut.model_validate(info)
 
-    @router.get("/healthz", response_model=Health, summary="Liveness (never needs a key)")
-    def healthz(request: Request) -> Health:
-        """``status: ok`` while the service runs, with the devices' state and active jobs."""
+    @router.get(
+        "/healthz",
+        response_model=Health,
+        responses={503: {"model": Health, "description": "the station cannot run jobs"}},
+        summary="Health: what is down and why (503 when the station cannot run jobs; "
+        "never needs a key)",
+    )
+    def healthz(request: Request) -> JSONResponse:
+        """``status``: ``ok``, or ``degraded`` with one sentence per problem in
+        ``problems`` while a component (hardware worker, job store, disk space,
+        devices, analysis processes) is down; HTTP 503 when the station cannot run
+        jobs (worker down or stopping, store not writable, a disk full, a device down)."""
         station: Orchestrator = request.app.state.station
-        active = station.store.list_jobs(states={JobState.QUEUED, *ACTIVE_STATES})
-        return Health(
-            status="ok",
+        report = station.health()
+        info = station.devices_info()
+        devices = device_state(info)
+        report["components"]["devices"] = {"state": devices, "problems": device_problems(info)}
+        if devices == "down":
+            report["problems"].append("devices: " + "; ".join(device_problems(info)))
+            report["can_run_jobs"] = False
+            report["status"] = "degraded"
+        try:
+            active: int | None = len(
+                station.store.list_jobs(states={JobState.QUEUED, *ACTIVE_STATES})
+            )
+        except StoreError:
+            active = None
+        body = Health(
+            status=report["status"],
             version=software_version(),
-            devices=device_state(station.devices_info()),
+            devices=devices,
             read_only_requires_key=request.app.state.config.server.read_only_requires_key,
-            jobs_active=len(active),
+            jobs_active=active,
+            can_run_jobs=report["can_run_jobs"],
+            problems=report["problems"],
+            components=report["components"],
+        )
+        return JSONResponse(
+            body.model_dump(),
+            status_code=200 if body.can_run_jobs else 503,
+            headers={"Cache-Control": "no-store"},
         )
 
     return router

@@ -161,6 +161,20 @@ class JobOut(BaseModel):
     pause_requested: bool = False
     cancel_requested: bool = False
     recent_fault: str | None = Field(default=None, description="last recovered fault")
+    station_id: str = Field(default="", description="the station that owns and runs the job")
+    station_alive: bool | None = Field(
+        default=None,
+        description="in the job list: whether the owning station's process is running "
+        "(holds its lock on the shared database); false: that station is down, and a job "
+        "it left running has no worker until the station restarts and marks it "
+        "interrupted; null where not reported",
+    )
+    camera_serial: str | None = Field(
+        default=None, description="serial number of the camera that took the frames"
+    )
+    archive_url: str | None = Field(
+        default=None, description="where the archive is uploaded (s3://...), if anywhere"
+    )
     links: JobLinks
 
 
@@ -168,6 +182,23 @@ class JobList(BaseModel):
     """Jobs, oldest first."""
 
     jobs: list[JobOut]
+
+
+class ResultVersionOut(BaseModel):
+    """One version of a job's result (0: the station's own; then each recalibration)."""
+
+    job_id: int
+    version: int = Field(description="0 for the station's result, then 1, 2, ...")
+    software_version: str = Field(description="lfcal-station version that computed it")
+    created_at: float = Field(description="Unix time (s) it was stored")
+    source: str = Field(description="station or recalibrate")
+    result: dict[str, Any] | None = Field(default=None, description="the result JSON")
+
+
+class ResultVersionList(BaseModel):
+    """Every version of a job's result, oldest first."""
+
+    versions: list[ResultVersionOut]
 
 
 class CalibrationResult(BaseModel):
@@ -185,13 +216,23 @@ class CalibrationResult(BaseModel):
 
 
 class Health(BaseModel):
-    """Liveness of the service."""
+    """Health of the station: what is down and why."""
 
-    status: str = Field(description='"ok"')
+    status: str = Field(description='"ok", or "degraded" while a component is down')
     version: str
     devices: str = Field(description="connected, busy, opening or down")
     read_only_requires_key: bool
-    jobs_active: int = Field(description="jobs queued, running or paused")
+    jobs_active: int | None = Field(
+        description="jobs queued, running or paused (null if the store cannot be read)"
+    )
+    can_run_jobs: bool = Field(
+        default=True, description="false (and HTTP 503) when the station cannot run jobs"
+    )
+    problems: list[str] = Field(default_factory=list, description="one sentence per problem")
+    components: dict[str, Any] = Field(
+        default_factory=dict,
+        description="worker, store, storage, analysis, devices: each with its state",
+    )
 
 
 class DevicesOut(BaseModel):

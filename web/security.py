@@ -1,7 +1,15 @@
 """API keys and request-size limits.
 
 :class:`ApiGuard` is an ASGI middleware in front of the routes. For every
-request under ``/api/``:
+request:
+
+0. **No key in the URL**: a query parameter named like a key (``api_key``,
+   ``apikey``, ``key``, ``token``, ``access_token``, ``x-api-key``) is refused
+   with 401 (``api_key_in_query``) on every path, before anything else: URLs
+   end up in access logs, proxies and browser histories. (The server's access
+   log also redacts such parameters: :class:`web.server.RedactKeys`.)
+
+and for every request under ``/api/``:
 
 1. **API key** (``X-API-Key``) on every mutating request (POST, PUT, PATCH,
    DELETE), and on read-only requests too when ``server.read_only_requires_key``
@@ -12,7 +20,12 @@ request under ``/api/``:
 2. **Body size**: a body larger than ``server.max_body_bytes`` is refused with
    413, from its ``Content-Length`` before anything is read, or while it is
    read (chunked uploads); the accepted body is buffered and handed on.
-3. **Media type**: a non-empty body whose ``Content-Type`` is not JSON: 415.
+   A body whose chunks stop arriving for ``body_timeout_s`` seconds: 408.
+3. **Media type**: a non-empty body whose ``Content-Type`` is missing or is not
+   JSON: 415.
+4. **JSON**: a body that is not UTF-8 or not JSON, or is nested too deeply for
+   the parser: 400 ``malformed_json`` (before FastAPI, which would answer a
+   generic 400 or a 422 with the raw bytes).
 
 The key is checked before the body is read, so a client without a key learns
 nothing about its request. Routes also declare the key with :data:`api_key_header`
@@ -21,9 +34,12 @@ so that the OpenAPI document shows the security scheme.
 
 from __future__ import annotations
 
+import asyncio
 import hmac
+import json
 from collections.abc import Iterable
 from typing import Any
+from urllib.parse import parse_qsl, unquote_plus
 
 from fastapi import Request, Security
 from fastapi.security import APIKeyHeader
@@ -35,6 +51,12 @@ API_KEY_HEADER = "X-API-Key"
 MUTATING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 OPEN_PATHS = frozenset({"/api/v1/healthz", "/api/v1/openapi.json", "/api/docs", "/api"})
 """API paths that never need a key (no station data: liveness, the API description)."""
+OPEN_PREFIXES = ("/api/docs/",)
+"""Path prefixes that never need a key (the API documentation's static files)."""
+KEY_PARAMETERS = frozenset(
+    {"api_key", "apikey", "api-key", "key", "token", "access_token", "x-api-key"}
+)
+"""Query parameters that look like credentials: refused, and redacted from logs."""
 
 api_key_header = APIKeyHeader(
     name=API_KEY_HEADER,
@@ -89,6 +111,8 @@ def needs_key(method: str, path: str, read_only_requires_key: bool) -> bool:
     """Whether a request to ``path`` with ``method`` must carry an API key."""
     if not path.startswith("/api/") or path in OPEN_PATHS or method == "OPTIONS":
         return False
+    if path.startswith(OPEN_PREFIXES):
+        return False
     return method in MUTATING_METHODS or read_only_requires_key
 
 
@@ -105,6 +129,54 @@ class BodyTooLarge(Exception):
     """The request body exceeds the limit."""
 
 
+class BodyTooSlow(Exception):
+    """The client stopped sending its body."""
+
+
+def key_in_query(query_string: bytes) -> str | None:
+    """The name of a credential-like query parameter (:data:`KEY_PARAMETERS`), or None."""
+    if not query_string:
+        return None
+    text = query_string.decode("latin-1")
+    for name, _ in parse_qsl(text, keep_blank_values=True):
+        if name.strip().lower() in KEY_PARAMETERS:
+            return name
+    return None
+
+
+def redact_query(text: str) -> str:
+    """``text`` (a path or a log line) with the value of every credential-like query
+    parameter (:data:`KEY_PARAMETERS`, also percent-encoded) replaced by ``REDACTED``."""
+    if "?" not in text:
+        return text
+    head, _, rest = text.partition("?")
+    query, space, tail = rest.partition(" ")
+    parts = []
+    for piece in query.split("&"):
+        name, eq, _value = piece.partition("=")
+        if unquote_plus(name).strip().lower() in KEY_PARAMETERS:
+            piece = f"{name}{eq or '='}REDACTED"
+        parts.append(piece)
+    return f"{head}?{'&'.join(parts)}{space}{redact_query(tail) if tail else ''}"
+
+
+def json_problem(body: bytes) -> str | None:
+    """Why ``body`` is not a JSON document (None: it is one)."""
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return f"it is not UTF-8: {exc.reason} at byte {exc.start}"
+    try:
+        json.loads(text)
+    except json.JSONDecodeError as exc:
+        return f"{exc.msg} at character {exc.pos}"
+    except RecursionError:
+        return "it is nested too deeply"
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 class ApiGuard:
     """The ASGI middleware described in the module docstring.
 
@@ -113,6 +185,7 @@ class ApiGuard:
         keys: the accepted API keys.
         max_body_bytes: largest accepted request body (bytes).
         read_only_requires_key: require a key on read-only API requests too.
+        body_timeout_s: longest wait for the next chunk of a body (s).
     """
 
     def __init__(
@@ -122,11 +195,13 @@ class ApiGuard:
         keys: ApiKeys,
         max_body_bytes: int,
         read_only_requires_key: bool = False,
+        body_timeout_s: float = 10.0,
     ) -> None:
         self.app = app
         self.keys = keys
         self.max_body_bytes = int(max_body_bytes)
         self.read_only_requires_key = read_only_requires_key
+        self.body_timeout_s = float(body_timeout_s)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -135,6 +210,20 @@ class ApiGuard:
         method = scope["method"].upper()
         path = scope["path"]
         headers = _headers(scope)
+        leaked = key_in_query(scope.get("query_string", b""))
+        if leaked is not None:
+            await _send_error(
+                send,
+                ApiError(
+                    401,
+                    "api_key_in_query",
+                    f"API keys are not accepted in the URL (query parameter {leaked!r}): URLs "
+                    f"end up in logs and browser histories. Send the key in the "
+                    f"{API_KEY_HEADER} header, and replace a key that was sent in a URL",
+                    headers={"WWW-Authenticate": f'ApiKey header="{API_KEY_HEADER}"'},
+                ),
+            )
+            return
         if needs_key(method, path, self.read_only_requires_key):
             error = self.keys.problem(headers.get(API_KEY_HEADER.lower()))
             if error is not None:
@@ -160,18 +249,44 @@ class ApiGuard:
         except BodyTooLarge:
             await _send_error(send, self._too_large(None))
             return
+        except BodyTooSlow:
+            await _send_error(
+                send,
+                ApiError(
+                    408,
+                    "request_timeout",
+                    f"the request body stopped arriving for {self.body_timeout_s:g} s",
+                ),
+            )
+            return
         content_type = headers.get("content-type")
-        if body.strip() and content_type is not None and not is_json_type(content_type):
+        if body.strip() and (content_type is None or not is_json_type(content_type)):
+            shown = "of no type (no Content-Type header)"
+            if content_type is not None:
+                shown = content_type.split(";")[0].strip() or shown
             await _send_error(
                 send,
                 ApiError(
                     415,
                     "unsupported_media_type",
-                    f"the body is {content_type.split(';')[0].strip() or 'of no type'}: send "
-                    "JSON with the header Content-Type: application/json",
+                    f"the body is {shown}: send JSON with the header "
+                    "Content-Type: application/json",
                 ),
             )
             return
+        if body.strip():
+            problem = json_problem(body)
+            if problem is not None:
+                await _send_error(
+                    send,
+                    ApiError(
+                        400,
+                        "malformed_json",
+                        f"the request body is not valid JSON ({problem}); send a JSON object "
+                        'such as {"start_mm": 0, "stop_mm": 99, "step_mm": 1}',
+                    ),
+                )
+                return
         await self.app(scope, _replay(body, receive), send)
 
     def _too_large(self, size: int | None) -> ApiError:
@@ -187,7 +302,10 @@ class ApiGuard:
         chunks: list[bytes] = []
         total = 0
         while True:
-            message = await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.body_timeout_s)
+            except TimeoutError:
+                raise BodyTooSlow() from None
             if message["type"] == "http.disconnect":
                 break
             chunk = message.get("body", b"")
@@ -231,7 +349,7 @@ async def _send_error(send: Send, error: ApiError) -> None:
         (b"content-type", b"application/json"),
         (b"content-length", str(len(body)).encode()),
     ]
-    if error.status == 413:
+    if error.status in (408, 413):
         headers.append((b"connection", b"close"))
     headers += [(k.lower().encode(), v.encode()) for k, v in error.headers.items()]
     start: dict[str, Any] = {"type": "http.response.start", "status": error.status}
@@ -240,8 +358,47 @@ async def _send_error(send: Send, error: ApiError) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
+class HeadAsGet:
+    """ASGI middleware: ``HEAD`` on a ``GET`` route answers as ``GET`` would, without
+    the body (the route runs as ``GET``; a streaming response is stopped once its
+    headers are sent). The server drops any body of a ``HEAD`` answer."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            await self.app(scope, receive, send)
+            return
+        started = asyncio.Event()
+
+        async def head_send(message: Message) -> None:
+            if message["type"] == "http.response.start" and not started.is_set():
+                await send(message)
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+                started.set()
+
+        task = asyncio.ensure_future(self.app(dict(scope, method="GET"), receive, head_send))
+        waiter = asyncio.ensure_future(started.wait())
+        try:
+            await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            waiter.cancel()
+            if not task.done():
+                task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                if not started.is_set():
+                    raise
+
+
 __all__ = [
     "API_KEY_HEADER",
+    "HeadAsGet",
+    "KEY_PARAMETERS",
+    "key_in_query",
+    "redact_query",
     "ApiGuard",
     "ApiKeys",
     "api_key_header",

@@ -9,8 +9,15 @@ Host and port default to ``[server]`` (127.0.0.1:8000). ``--port 0`` picks a
 free port. The station (job store, hardware worker) is started before the
 server listens, so a database held by another station process is reported at
 once (exit 3). The first line on stdout is ``lfcal serve: listening on URL``.
-Ctrl-C or SIGTERM stop it: open event streams end, the running job stops at its
-next step boundary (``interrupted``, resumable), the devices are closed.
+Ctrl-C or SIGTERM stop it: new jobs are refused (503), the running job stops at
+its next step boundary (``interrupted``, resumable; waited for up to 30 s), then
+every open event stream ends with the job's final ``state`` event, the server
+stops and the devices are closed.
+
+:func:`uvicorn_config` is the server's configuration (also for tests and
+benchmarks): request-head limits and slow-client timeouts
+(:mod:`web.http_limits`), at most :data:`MAX_CONNECTIONS` connections and
+tasks, and access logs without credentials (:class:`RedactKeys`).
 
 Exit codes: 0 stopped normally; 2 bad input (configuration, host, port in use);
 3 another station process holds the job database.
@@ -20,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
+import logging
 import signal
 import socket
 import sys
@@ -29,6 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import uvicorn
+from uvicorn.config import LOGGING_CONFIG
+
+from web.http_limits import DEFAULT_LIMITS, HttpLimits, protocol_with
+from web.security import redact_query
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
@@ -55,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--sim-frame-cache",
         type=Path,
-        help="simulation: cache rendered frames in this directory",
+        help="simulation: cache rendered frames in this directory (sets [camera] frame_cache)",
     )
     p.add_argument(
         "--analysis-workers",
@@ -70,6 +83,55 @@ def build_parser() -> argparse.ArgumentParser:
         help="server log level (default info)",
     )
     return p
+
+
+MAX_CONNECTIONS = 500
+"""Connections plus running requests beyond which uvicorn answers 503."""
+STOP_JOBS_TIMEOUT_S = 30.0
+"""How long a SIGTERM waits for the running job to reach its step boundary (s)."""
+
+
+class RedactKeys(logging.Filter):
+    """Replaces credential-like query parameters (``api_key``, ``key``, ``token`` ...)
+    in log records by ``REDACTED`` (see :func:`web.security.redact_query`)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact_query(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact_query(a) if isinstance(a, str) else a for a in record.args)
+        return True
+
+
+def log_config() -> dict[str, Any]:
+    """uvicorn's logging configuration with :class:`RedactKeys` on every handler."""
+    config = copy.deepcopy(LOGGING_CONFIG)
+    config["filters"] = {"redact_keys": {"()": RedactKeys}}
+    for handler in config["handlers"].values():
+        handler["filters"] = ["redact_keys"]
+    return config
+
+
+def uvicorn_config(
+    app: Any,
+    *,
+    log_level: str = "info",
+    limits: HttpLimits = DEFAULT_LIMITS,
+    timeout_graceful_shutdown: int = 3,
+) -> uvicorn.Config:
+    """The server configuration of ``lfcal serve`` for ``app`` (see the module docstring)."""
+    return uvicorn.Config(
+        app,
+        http=protocol_with(limits),
+        log_level=log_level,
+        log_config=log_config(),
+        workers=1,
+        timeout_graceful_shutdown=timeout_graceful_shutdown,
+        timeout_keep_alive=5,
+        limit_concurrency=MAX_CONNECTIONS,
+        proxy_headers=False,
+        server_header=False,
+    )
 
 
 def is_loopback(host: str) -> bool:
@@ -101,16 +163,29 @@ def bind_socket(host: str, port: int) -> socket.socket:
 
 
 class _Server(uvicorn.Server):
-    """uvicorn's server that ends the event streams on Ctrl-C/SIGTERM and returns normally
-    (uvicorn would re-raise the signal after shutting down)."""
+    """uvicorn's server that, on Ctrl-C/SIGTERM, first runs ``on_exit`` (stop the running
+    job, end the event streams) in a thread while it keeps serving, then stops, and
+    returns normally (uvicorn would re-raise the signal after shutting down). A second
+    signal stops at once."""
 
     def __init__(self, config: uvicorn.Config, on_exit: Callable[[], None]) -> None:
         super().__init__(config)
         self._on_exit = on_exit
+        self._exiting: threading.Thread | None = None
 
     def handle_exit(self, sig: int, frame: Any) -> None:
-        self._on_exit()
-        super().handle_exit(sig, frame)
+        if self._exiting is not None:
+            super().handle_exit(sig, frame)
+            return
+
+        def graceful() -> None:
+            try:
+                self._on_exit()
+            finally:
+                super(_Server, self).handle_exit(sig, frame)
+
+        self._exiting = threading.Thread(target=graceful, name="graceful-stop", daemon=True)
+        self._exiting.start()
 
     @contextlib.contextmanager
     def capture_signals(self) -> Iterator[None]:
@@ -128,18 +203,15 @@ class _Server(uvicorn.Server):
 
 def serve_main(argv: Sequence[str] | None = None) -> int:
     """``lfcal serve``: run the server until Ctrl-C/SIGTERM; returns the exit code."""
-    from station.config import ConfigError, load_config
+    from station.config import load_config_or_report, with_frame_cache
     from station.orchestrator import Orchestrator, StationBusy
+    from station.store import StoreError
     from web.app import create_app
 
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     err = sys.stderr
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        err.write(f"lfcal serve: {args.config}: invalid configuration\n")
-        for line in exc.format_problems():
-            err.write(f"  {line}\n")
+    config = load_config_or_report(args.config, "lfcal serve", err)
+    if config is None:
         return EXIT_BAD_INPUT
     host = args.host or config.server.host
     port = config.server.port if args.port is None else args.port
@@ -162,9 +234,8 @@ def serve_main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
 
     station = Orchestrator(
-        config,
+        with_frame_cache(config, args.sim_frame_cache),
         emulator_speedup=args.emulator_speedup,
-        sim_frame_cache=args.sim_frame_cache,
         analysis_workers=args.analysis_workers,
     )
     try:
@@ -173,23 +244,21 @@ def serve_main(argv: Sequence[str] | None = None) -> int:
         sock.close()
         err.write(f"lfcal serve: {exc}\n")
         return EXIT_BUSY
+    except StoreError as exc:
+        sock.close()
+        err.write(f"lfcal serve: {exc}\n")  # names the job database or the object store
+        return EXIT_BAD_INPUT
     try:
         app = create_app(config, station=station)
-        uv_config = uvicorn.Config(
-            app,
-            log_level=args.log_level,
-            workers=1,
-            timeout_graceful_shutdown=3,
-            proxy_headers=False,
-            server_header=False,
-        )
+        uv_config = uvicorn_config(app, log_level=args.log_level)
 
-        def stop_streams() -> None:
+        def stop_gracefully() -> None:
+            station.stop_jobs(STOP_JOBS_TIMEOUT_S)  # the job's final state reaches the streams
             bridge = app.state.events
             if bridge is not None:
                 bridge.stop_streams()
 
-        server = _Server(uv_config, stop_streams)
+        server = _Server(uv_config, stop_gracefully)
         bound_host, bound_port = sock.getsockname()[:2]
         shown = f"[{bound_host}]" if ":" in bound_host else bound_host
         url = f"http://{shown}:{bound_port}"
@@ -219,4 +288,11 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["build_parser", "serve_main"]
+__all__ = [
+    "MAX_CONNECTIONS",
+    "RedactKeys",
+    "build_parser",
+    "log_config",
+    "serve_main",
+    "uvicorn_config",
+]

@@ -8,13 +8,16 @@ the job store, then the live events. Other events (``analysis``, ``state``,
 ``phase``, ``fault``) carry no id. The stream starts with the replay (every
 recorded step with its analysis summary, then the current ``state``) and ends
 after the job reaches a final state; a comment line is sent every 15 s to keep
-the connection open.
+the connection open. When the server stops (SIGTERM), the running job is
+stopped first (``interrupted`` at its next step boundary) and every stream ends
+with a ``state`` event: the job's state at that moment.
 
 :class:`EventBridge` forwards the station's events (published in the station's
-threads) to the asyncio queues of the connected clients with
-``loop.call_soon_threadsafe``, so the station never waits for a slow client; a
-client that falls more than ``maxsize`` events behind is re-synchronised from
-the store.
+threads) to the asyncio queues of the connected clients with one
+``loop.call_soon_threadsafe`` per event, so the station never waits for a slow
+client; each event is serialised once on the event loop, whatever the number of
+clients; a client that falls more than ``maxsize`` events behind is
+re-synchronised from the store.
 """
 
 from __future__ import annotations
@@ -40,15 +43,19 @@ KEEPALIVE_S = 15.0
 FINAL = frozenset(s.value for s in FINAL_STATES)
 
 
+_Item = tuple[JobEvent, str] | None
+"""An event with its SSE text, or None: the server stops."""
+
+
 class _Client:
     def __init__(self, job_id: int, maxsize: int) -> None:
         self.job_id = job_id
-        self.queue: asyncio.Queue[JobEvent | None] = asyncio.Queue(maxsize)
+        self.queue: asyncio.Queue[_Item] = asyncio.Queue(maxsize)
         self.overflowed = False
 
-    def offer(self, event: JobEvent | None) -> None:
+    def offer(self, item: _Item) -> None:
         try:
-            self.queue.put_nowait(event)
+            self.queue.put_nowait(item)
         except asyncio.QueueFull:
             self.overflowed = True
 
@@ -99,16 +106,26 @@ class EventBridge:
         self._broadcast(event)
 
     def _broadcast(self, event: JobEvent | None) -> None:
+        """In the publishing thread: the clients connected now get the event (one
+        hand-over to the event loop, whatever their number)."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return
         with self._lock:
             targets = [c for c in self._clients if event is None or c.job_id == event.job_id]
+        if not targets:
+            return
+        try:
+            loop.call_soon_threadsafe(self._deliver, event, targets)
+        except RuntimeError:  # the loop has closed
+            return
+
+    @staticmethod
+    def _deliver(event: JobEvent | None, targets: list[_Client]) -> None:
+        """On the event loop: serialise the event once, queue it for every target."""
+        item = None if event is None else (event, format_event(event))
         for client in targets:
-            try:
-                loop.call_soon_threadsafe(client.offer, event)
-            except RuntimeError:  # the loop has closed
-                return
+            client.offer(item)
 
 
 def format_event(event: JobEvent) -> str:
@@ -134,11 +151,17 @@ async def event_stream(bridge: EventBridge, job_id: int, after: int | None) -> A
             return
         while True:
             try:
-                event = await asyncio.wait_for(client.queue.get(), KEEPALIVE_S)
+                item = await asyncio.wait_for(client.queue.get(), KEEPALIVE_S)
             except TimeoutError:
                 yield ": keep-alive\n\n"
                 continue
-            if event is None:
+            if item is None:  # the server stops: end with the job's state (from the store)
+                try:
+                    final = await run_in_threadpool(station.replay, job_id, last_step)
+                except Exception:  # noqa: BLE001 - the stream ends either way
+                    return
+                for again in final:
+                    yield format_event(again)
                 return
             if client.overflowed:  # fell behind: re-synchronise from the store
                 client.overflowed = False
@@ -151,11 +174,12 @@ async def event_stream(bridge: EventBridge, job_id: int, after: int | None) -> A
                     if again.type == "state" and again.data.get("state") in FINAL:
                         return
                 continue
+            event, text = item
             if event.type == "step" and event.id is not None:
                 if event.id <= last_step:
                     continue
                 last_step = event.id
-            yield format_event(event)
+            yield text
             if event.type == "state" and event.data.get("state") in FINAL:
                 return
     finally:

@@ -10,12 +10,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from fastapi.responses import JSONResponse
-
-from station.orchestrator import FrameNotFound, JobStatus, Orchestrator, ResultNotReady
-from station.store import IdempotencyConflict, InvalidTransition, JobNotFound
+from station.orchestrator import FrameNotFound, JobStatus, ResultNotReady
+from station.store import IdempotencyConflict, InvalidTransition, JobNotFound, StoreUnavailable
 from station.sweep import RequestInvalid
-from web.errors import ApiError
+from web.errors import ApiError, storage_error
 from web.schemas import JobLinks, JobOut
 
 API = "/api/v1"
@@ -23,9 +21,11 @@ API = "/api/v1"
 
 @contextmanager
 def station_errors() -> Iterator[None]:
-    """Turn the station's exceptions into :class:`ApiError` (404, 409, 422, 503)."""
+    """Turn the station's exceptions into :class:`ApiError` (404, 409, 422, 503, 507)."""
     try:
         yield
+    except StoreUnavailable as exc:  # a full disk (507) or a database that cannot be written
+        raise storage_error(exc) from None
     except JobNotFound as exc:
         raise ApiError(404, "job_not_found", f"{exc}: list the jobs with GET {API}/jobs") from None
     except FrameNotFound as exc:
@@ -86,7 +86,8 @@ _JOB_FIELDS = tuple(JobOut.model_fields)
 
 def job_dict(status: JobStatus) -> dict[str, Any]:
     """The API view of a job status as a JSON-ready dict (the :class:`JobOut` shape),
-    without model validation: the status route is the one clients poll."""
+    without model validation: the status route is the one clients poll
+    (:mod:`web.fast_status`)."""
     data = status.to_dict()
     data["links"] = links_dict(status.id)
     return {k: data.get(k) for k in _JOB_FIELDS}
@@ -97,11 +98,4 @@ def job_out(status: JobStatus) -> JobOut:
     return JobOut.model_validate(job_dict(status))
 
 
-def status_response(station: Orchestrator, job_id: int) -> JSONResponse:
-    """``GET /jobs/{id}``: the job's status (404 if unknown), serialised directly."""
-    with station_errors():
-        status = station.status(job_id)
-    return JSONResponse(job_dict(status))
-
-
-__all__ = ["API", "job_dict", "job_out", "links", "station_errors", "status_response"]
+__all__ = ["API", "job_dict", "job_out", "links", "station_errors"]

@@ -611,6 +611,23 @@ def build_parser():
     ap.add_argument("--nsub", type=int, default=2, help="sub-pixel samples per axis")
     ap.add_argument("--nap", type=int, default=5, help="microlens aperture samples per axis")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--manifest-main-focal-mm", type=float, default=None, help="F stated in the manifest"
+    )
+    ap.add_argument(
+        "--manifest-mla-focal-mm", type=float, default=None, help="f stated in the manifest"
+    )
+    ap.add_argument(
+        "--manifest-rail-zero-mm",
+        type=float,
+        default=None,
+        help="rail zero object distance stated in the manifest",
+    )
+    ap.add_argument(
+        "--manifest-tolerances",
+        default=None,
+        help="F_TOL,f_TOL,RAIL_TOL (mm, 1 sigma) stated in the manifest",
+    )
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument(
         "--only",
@@ -705,6 +722,18 @@ def main(argv=None):
             "gain_counts_per_e": 0.8 * (2**args.bit_depth - 1) / (args.photons * LIGHT),
         },
     }
+    # data-sheet values other than the rendered camera's (the truth keeps the true ones)
+    if args.manifest_main_focal_mm is not None:
+        manifest["optics"]["main_focal_mm"] = args.manifest_main_focal_mm
+    if args.manifest_mla_focal_mm is not None:
+        manifest["optics"]["mla_focal_mm"] = args.manifest_mla_focal_mm
+    if args.manifest_rail_zero_mm is not None:
+        manifest["rail"]["zero_object_distance_mm"] = args.manifest_rail_zero_mm
+    if args.manifest_tolerances:
+        tol_f_main, tol_f_mla, tol_rail = (float(v) for v in args.manifest_tolerances.split(","))
+        manifest["optics"]["main_focal_tolerance_mm"] = tol_f_main
+        manifest["optics"]["mla_focal_tolerance_mm"] = tol_f_mla
+        manifest["rail"]["zero_object_distance_tolerance_mm"] = tol_rail
     with open(os.path.join(out, "sweep.json"), "w") as fh:
         json.dump(manifest, fh, indent=1)
     truth = truth_dict(

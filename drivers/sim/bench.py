@@ -35,6 +35,7 @@ Typical use (units: mm)::
 from __future__ import annotations
 
 import math
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -120,6 +121,7 @@ class SimulatedBench:
         speedup: the emulated motion runs this many times faster than real time.
         camera_seed: noise seed of the camera.
         reference_exposure_us: exposure (µs) at which the scene's white level holds.
+        frame_cache: directory where the camera keeps and reuses its rendered frames.
     """
 
     def __init__(
@@ -136,6 +138,7 @@ class SimulatedBench:
         speedup: float = 1.0,
         camera_seed: int = 0,
         reference_exposure_us: float = 10000.0,
+        frame_cache: str | os.PathLike[str] | None = None,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
@@ -164,6 +167,8 @@ class SimulatedBench:
                 self.scene_state,
                 seed=camera_seed,
                 reference_exposure_us=reference_exposure_us,
+                frame_cache=frame_cache,
+                principal_point_px=getattr(scene, "principal_point_px", None),
             )
             if scene is not None
             else None

@@ -41,6 +41,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--travel-mm", type=float, default=100.0, help="travel of each axis (mm)")
     parser.add_argument("--speed-mm-s", type=float, default=20.0, help="initial maxspeed (mm/s)")
     parser.add_argument("--accel-mm-s2", type=float, default=200.0, help="initial accel (mm/s^2)")
+    parser.add_argument(
+        "--firmware",
+        type=int,
+        choices=(6, 7),
+        default=7,
+        help="firmware series to behave like: 6 (deviceid, no move speed arguments) or 7",
+    )
     return parser
 
 
@@ -78,7 +85,7 @@ def main(
         accel_mm_s2=args.accel_mm_s2,
     )
     devices = [
-        DeviceSpec(address=n, axes=(axis,) * args.axes, serial=100000 + n)
+        DeviceSpec(address=n, axes=(axis,) * args.axes, serial=100000 + n, firmware=args.firmware)
         for n in range(1, args.devices + 1)
     ]
     transport: Transport = "tcp" if args.tcp is not None else "pty"
@@ -94,7 +101,8 @@ def main(
         with emulator:
             print(
                 f"Zaber ASCII emulator: {args.devices} device(s) x {args.axes} axis(es), "
-                f"microstep {args.microstep_um} um, travel {args.travel_mm} mm, "
+                f"firmware {args.firmware}, microstep {args.microstep_um} um, "
+                f"travel {args.travel_mm} mm, "
                 f"speedup x{args.speedup:g}",
                 file=out,
             )

@@ -77,6 +77,8 @@ GVBS_MANUFACTURER_NAME = 0x48
 GVBS_MODEL_NAME = 0x68
 #: Device-specific area of the 64 KiB fake register space, unused by Aravis: the Gain value.
 REG_GAIN_DB = 0xB000
+#: ... and the DeviceTemperature value (IEEE double, °C), set by the test.
+REG_TEMPERATURE_C = 0xB008
 
 DEFAULT_ADDRESS = "127.0.0.1"
 GVCP_PORT = 3956
@@ -232,8 +234,9 @@ def patch_genicam_xml(
     """Add the SFNC features the station needs to the library's fake-camera XML.
 
     Adds (when missing) ``DeviceSerialNumber``, ``ExposureTime`` (Float, µs, on the fake's
-    exposure register), ``Gain`` (Float, dB, on an IEEE double register), and a ``Mono12``
-    ``PixelFormat`` entry.  Existing nodes are left alone.
+    exposure register), ``Gain`` (Float, dB, on an IEEE double register),
+    ``DeviceTemperature`` (Float, °C, read-only, set with
+    :meth:`FakeGigECamera.set_temperature_c`), and a ``Mono12`` ``PixelFormat`` entry.  Existing nodes are left alone.
     """
     ET.register_namespace("", GENAPI_NS)
     ET.register_namespace("xsi", XSI_NS)
@@ -283,6 +286,24 @@ def patch_genicam_xml(
         new += [gain, reg]
         category_add("AnalogControl", "Gain")
         category_add("Root", "AnalogControl")
+
+    if "DeviceTemperature" not in by_name:
+        temp = ET.Element(_q("Float"), {"Name": "DeviceTemperature", "NameSpace": "Standard"})
+        _sub(temp, "Description", "Temperature of the sensor, in degrees Celsius.")
+        _sub(temp, "pValue", "DeviceTemperatureRegister")
+        _sub(temp, "Min", "-40.0")
+        _sub(temp, "Max", "150.0")
+        _sub(temp, "Unit", "C")
+        reg = ET.Element(
+            _q("FloatReg"), {"Name": "DeviceTemperatureRegister", "NameSpace": "Custom"}
+        )
+        _sub(reg, "Address", hex(REG_TEMPERATURE_C))
+        _sub(reg, "Length", "8")
+        _sub(reg, "AccessMode", "RO")
+        _sub(reg, "pPort", "Device")
+        _sub(reg, "Endianess", "BigEndian")
+        new += [temp, reg]
+        category_add("DeviceControl", "DeviceTemperature")
 
     pixel_format = by_name.get("PixelFormat")
     if pixel_format is not None:
@@ -507,6 +528,14 @@ class FakeGigECamera:
             raise RuntimeError("the fake camera is stopped")
         hi, lo = self.read_register(REG_GAIN_DB), self.read_register(REG_GAIN_DB + 4)
         return float(np.frombuffer(((hi << 32) | lo).to_bytes(8, "big"), dtype=">f8")[0])
+
+    def set_temperature_c(self, celsius: float) -> None:
+        """Set what ``DeviceTemperature`` reads (°C)."""
+        if self._fake is None:
+            raise RuntimeError("the fake camera is stopped")
+        word = int.from_bytes(np.array([celsius], dtype=">f8").tobytes(), "big")
+        _lib().arv_fake_camera_write_register(self._fake, REG_TEMPERATURE_C, word >> 32)
+        _lib().arv_fake_camera_write_register(self._fake, REG_TEMPERATURE_C + 4, word & 0xFFFFFFFF)
 
     def served_frame(self, frame_id: int) -> np.ndarray | None:
         """The array served with this block id, if still kept."""

@@ -24,8 +24,15 @@ XY stage).  It follows the same contract as the Aravis and harvesters backends:
   wall clock, plus exposure, gain, pixel format, ROI and bit depth.
 
 The camera knows nothing about plenoptic optics: what it sees is a :class:`Scene`
-(``station.sim_scene.PlenopticScene`` wraps ``calibration.simulator``), injected by the
-caller -- ``drivers`` does not import the calibration core (import-linter layers).
+(:class:`drivers.sim.plenoptic_scene.PlenopticScene` wraps ``calibration.simulator``),
+injected by the caller.  With ``frame_cache=DIR`` (``[camera] frame_cache``) the camera
+keeps its rendered frames on disk and reuses them for the same bench state
+(:class:`drivers.sim.frame_cache.CachedScene`): the cache is the simulated camera's own
+business, nothing outside it knows.
+
+Trigger: software only (``trigger="software"``; a line trigger raises
+``FeatureMissing``).  ``DeviceTemperature``: :attr:`SimulatedCamera.sensor_temperature_c`
+(°C, settable), recorded in every frame like a real camera's.
 
 Fault hooks for tests (each one consumed by the next grabs)::
 
@@ -41,6 +48,7 @@ the camera it stands for; a full 5120 x 5120 frame takes seconds).
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -51,7 +59,15 @@ from typing import Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.camera import CameraContext, CameraInfo, CameraSettings, Frame, Roi, bit_depth
+from drivers.camera import (
+    SOFTWARE_TRIGGER,
+    CameraContext,
+    CameraInfo,
+    CameraSettings,
+    Frame,
+    Roi,
+    bit_depth,
+)
 from drivers.camera_errors import (
     CameraError,
     CameraLost,
@@ -138,6 +154,9 @@ class SimulatedCamera(CameraContext):
         exposure_limits_us: (min, max) exposure (µs).
         gain_limits_db: (min, max) gain (dB).
         serial: ``DeviceSerialNumber`` reported by :meth:`info`.
+        frame_cache: directory where rendered frames are kept and reused (None: none).
+        principal_point_px: the scene's principal point (px, full sensor), reported in
+            :meth:`info` (a real camera does not know it).
 
     Implements :class:`drivers.camera.Camera`.
     """
@@ -155,6 +174,8 @@ class SimulatedCamera(CameraContext):
         exposure_limits_us: tuple[float, float] = (10.0, 60e6),
         gain_limits_db: tuple[float, float] = (0.0, 48.0),
         serial: str | None = None,
+        frame_cache: str | os.PathLike[str] | None = None,
+        principal_point_px: tuple[float, float] | None = None,
     ) -> None:
         if not reference_exposure_us > 0:
             raise ValueError("reference_exposure_us must be positive")
@@ -163,8 +184,15 @@ class SimulatedCamera(CameraContext):
             raise ValueError("exposure limits must satisfy 0 < min <= reference <= max")
         if not gain_limits_db[0] <= 0.0 <= gain_limits_db[1]:
             raise ValueError("gain limits must include 0 dB")
+        if frame_cache is not None:
+            from drivers.sim.frame_cache import CachedScene
+
+            scene = CachedScene(scene, frame_cache)
         self._scene = scene
         self._state = state
+        self.principal_point_px = principal_point_px
+        #: ``DeviceTemperature`` (°C) of the simulated sensor, recorded with every frame.
+        self.sensor_temperature_c = 38.5
         self.seed = seed
         self.reference_exposure_us = float(reference_exposure_us)
         self._exposure_limits = (float(lo), float(hi))
@@ -215,6 +243,10 @@ class SimulatedCamera(CameraContext):
 
     # ------------------------------------------------------------------ Camera interface
 
+    def temperature_c(self) -> float | None:
+        """The simulated sensor's ``DeviceTemperature`` (°C)."""
+        return self.sensor_temperature_c
+
     def info(self) -> CameraInfo:
         """Identity and capabilities."""
         with self._lock:
@@ -231,7 +263,16 @@ class SimulatedCamera(CameraContext):
                 gain_limits=self._gain_limits,
                 device=self.label,
                 backend=self.backend,
+                gain_feature="Gain",
+                has_temperature=True,
+                principal_point_px=self.principal_point_px,
             )
+
+    @property
+    def scene(self) -> Scene:
+        """What the camera renders (a :class:`~drivers.sim.frame_cache.CachedScene` when
+        frames are cached)."""
+        return self._scene
 
     def exposure_limits_us(self) -> tuple[float, float]:
         """(min, max) exposure in µs."""
@@ -281,6 +322,15 @@ class SimulatedCamera(CameraContext):
             gain = self._settings.gain
             if settings.gain is not None:
                 gain = self._check_range("Gain", settings.gain, self._gain_limits)
+            if settings.trigger != SOFTWARE_TRIGGER:
+                raise FeatureMissing(
+                    f"TriggerSource has no entry {settings.trigger!r}; offered: Software",
+                    feature="TriggerSource",
+                    value=settings.trigger,
+                    offered=("Software",),
+                    device=self.label,
+                    hint='the simulated camera has the software trigger only: trigger = "software"',
+                )
             self._settings = CameraSettings(
                 pixel_format=settings.pixel_format, exposure_us=exposure, gain=gain, roi=roi
             )
@@ -432,6 +482,9 @@ class SimulatedCamera(CameraContext):
             offset_y=roi.offset_y,
             bit_depth=depth,
             device=self.label,
+            gain_feature="Gain",
+            temperature_c=self.sensor_temperature_c,
+            flat_field="off",
         )
 
 

@@ -28,6 +28,15 @@ Fault injection (each test drives one kind)::
     emu.power_cycle_on_next_move(d, a, f) / emu.power_cycle(d)   position lost, WR set
     emu.set_flags(d, a, "WT", ...)    raise any warning flag (temperature, voltage...)
 
+Firmware series (``firmware=6`` or ``7``, per device or for the whole chain): firmware
+6 names the identity settings ``deviceid`` / ``peripheralid``, firmware 7
+``device.id`` / ``peripheral.id`` (each rejects the other's names with
+``RJ BADCOMMAND``); ``get version`` answers ``6.32`` / ``7.38``; ``move abs|rel`` take
+the optional ``speed accel`` arguments only from firmware 7.25 on (``RJ BADDATA``
+before).  As on the firmware, the NI flag (command interrupted) set by ``stop`` or by
+a command that interrupts a motion stays set -- through later, successful moves --
+until ``warnings clear``.
+
 Modelling choices (documented where a real device may differ): a command with
 a wrong checksum is discarded without reply; moves are accepted while WR is
 set (the driver is the one that refuses them); a move that interrupts another
@@ -36,6 +45,7 @@ starts from rest at the current position.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import heapq
 import itertools
@@ -97,13 +107,41 @@ class AxisSpec:
 
 @dataclass(frozen=True)
 class DeviceSpec:
-    """One emulated device on the chain."""
+    """One emulated device on the chain.
+
+    Attributes:
+        address: device number (1-99).
+        axes: the device's axes.
+        device_id: product id (``deviceid`` / ``device.id``).
+        serial: ``system.serial``.
+        firmware: 6 or 7: the setting names and commands of that firmware series
+            (see :data:`FIRMWARE_SETTING_NAMES`).
+        version: ``get version`` answer; default ``"6.32"`` or ``"7.38"`` by firmware.
+        peripheral_id: per-axis ``peripheralid`` / ``peripheral.id``.
+    """
 
     address: int = 1
     axes: tuple[AxisSpec, ...] = (AxisSpec(),)
     device_id: int = 50081
     serial: int = 100001
-    version: str = "7.38"
+    firmware: int = 7
+    version: str | None = None
+    peripheral_id: int = 70245
+
+    def __post_init__(self) -> None:
+        if self.firmware not in (6, 7):
+            raise ValueError(f"firmware must be 6 or 7, got {self.firmware}")
+
+    @property
+    def version_text(self) -> str:
+        """What ``get version`` answers."""
+        return self.version or ("6.32" if self.firmware == 6 else "7.38")
+
+    @property
+    def version_number(self) -> tuple[int, int]:
+        """(major, minor) of :attr:`version_text`."""
+        major, _, minor = self.version_text.partition(".")
+        return int(major), int(minor or 0)
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -419,16 +457,39 @@ class _TcpLink:
 
 # --------------------------------------------------------------------------- emulator
 
+#: Settings whose name differs between the firmware series: (firmware 6, firmware 7).
+#: Firmware 7 renamed the identity settings (Zaber's FW7 protocol manual); a device of
+#: either series rejects the other series' name with ``RJ BADCOMMAND``.
+FIRMWARE_SETTING_NAMES: dict[str, tuple[str, str]] = {
+    "device_id": ("deviceid", "device.id"),
+    "peripheral_id": ("peripheralid", "peripheral.id"),
+}
+#: ``move abs``/``move rel`` take optional speed and acceleration arguments from 7.25 on.
+MOVE_SPEED_ARGS_SINCE = (7, 25)
+
 _DEVICE_SETTINGS = (
-    "device.id",
+    "device_id",
     "system.serial",
     "version",
     "comm.checksum",
     "comm.alert",
     "system.axiscount",
 )
-_AXIS_SETTINGS = ("pos", "maxspeed", "accel", "limit.min", "limit.max")
-_READ_ONLY = frozenset({"device.id", "system.serial", "version", "system.axiscount"})
+_AXIS_SETTINGS = ("pos", "maxspeed", "accel", "limit.min", "limit.max", "peripheral_id")
+_READ_ONLY = frozenset(
+    {"device_id", "system.serial", "version", "system.axiscount", "peripheral_id"}
+)
+
+
+def _canonical_setting(name: str, firmware: int) -> str | None:
+    """The internal key of a setting name as a device of ``firmware`` knows it (None:
+    unknown to that firmware, e.g. ``device.id`` on firmware 6)."""
+    for key, names in FIRMWARE_SETTING_NAMES.items():
+        if name in names:
+            return key if names[0 if firmware == 6 else 1] == name else None
+        if name == key:
+            return None
+    return name
 
 
 @dataclass(frozen=True)
@@ -472,6 +533,8 @@ class ZaberEmulator:
         speedup: motion runs this many times faster than real time.
         checksum: initial comm.checksum (devices ship with 0).
         alert: initial comm.alert.
+        firmware: 6 or 7: make every device of the chain behave like that firmware
+            series (None: as each :class:`DeviceSpec` says, default 7).
     """
 
     def __init__(
@@ -483,8 +546,11 @@ class ZaberEmulator:
         speedup: float = 1.0,
         checksum: bool = False,
         alert: bool = False,
+        firmware: int | None = None,
     ) -> None:
         specs = list(devices) if devices else [DeviceSpec()]
+        if firmware is not None:
+            specs = [dataclasses.replace(spec, firmware=firmware) for spec in specs]
         addresses = [spec.address for spec in specs]
         if len(set(addresses)) != len(addresses) or not all(1 <= a <= 99 for a in addresses):
             raise ValueError(f"device addresses must be unique and 1-99, got {addresses}")
@@ -586,6 +652,23 @@ class ZaberEmulator:
             return AxisSnapshot(
                 ax.reported(now), ax.phys_at(now), ax.busy(now), frozenset(ax.flags)
             )
+
+    def firmware(self, device: int) -> int:
+        """Firmware series (6 or 7) of ``device``."""
+        with self._lock:
+            return self._device(device).spec.firmware
+
+    def device_checksum(self, device: int) -> bool:
+        """Current ``comm.checksum`` of ``device``."""
+        with self._lock:
+            return self._device(device).checksum
+
+    def stop_axis(self, device: int, axis: int) -> None:
+        """Stop a moving axis as a ``stop`` from elsewhere would (no reply is sent): it
+        decelerates and raises NI."""
+        with self._lock:
+            dev = self._device(device)
+            self._cmd_stop(dev, axis, [self._axis(device, axis)], [], self._now())
 
     def is_powered(self, device: int) -> bool:
         """False while ``device`` is off after a power cycle (it answers nothing then)."""
@@ -970,10 +1053,21 @@ class ZaberEmulator:
         if not args or args[0] not in ("abs", "rel", "min", "max"):
             return "RJ BADCOMMAND"
         mode, rest = args[0], args[1:]
+        speed: int | None = None
+        accel: int | None = None
         if mode in ("abs", "rel"):
-            if len(rest) != 1 or not _is_int(rest[0]):
+            # move abs|rel <value> [speed accel]: the optional pair only from 7.25 on
+            with_speed = dev.spec.version_number >= MOVE_SPEED_ARGS_SINCE
+            if len(rest) not in ((1, 3) if with_speed else (1,)):
+                return "RJ BADDATA"
+            if not all(_is_int(token) for token in rest):
                 return "RJ BADDATA"
             value = int(rest[0])
+            if len(rest) == 3:
+                speed, accel = int(rest[1]), int(rest[2])
+                if speed < 0 or accel < 0:
+                    return "RJ BADDATA"
+                speed, accel = speed or None, accel or None  # 0: the setting's value
         elif rest:
             return "RJ BADDATA"
         else:
@@ -991,7 +1085,15 @@ class ZaberEmulator:
                 return "RJ BADDATA"
             targets.append((ax, target))
         for ax, target in targets:
-            self._start_motion(dev, ax, target_phys=target + ax.offset, kind="move", now=now)
+            self._start_motion(
+                dev,
+                ax,
+                target_phys=target + ax.offset,
+                kind="move",
+                now=now,
+                speed=speed,
+                accel=accel,
+            )
         return "0"
 
     def _cmd_stop(
@@ -1028,31 +1130,35 @@ class ZaberEmulator:
     ) -> str:
         if len(args) != 1:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
-        name = args[0]
+        name = _canonical_setting(args[0], dev.spec.firmware)
         if name in _DEVICE_SETTINGS:
             if axis != 0:
                 return "RJ DEVICEONLY"
             return {
-                "device.id": str(dev.spec.device_id),
+                "device_id": str(dev.spec.device_id),
                 "system.serial": str(dev.spec.serial),
-                "version": dev.spec.version,
+                "version": dev.spec.version_text,
                 "comm.checksum": str(int(dev.checksum)),
                 "comm.alert": str(int(dev.alert)),
                 "system.axiscount": str(len(dev.axes)),
             }[name]
         if name in _AXIS_SETTINGS:
-            values = [self._get_axis_setting(ax, name, now) for ax in axes]
+            # axis 0: one value per axis, in axis order (the manual's "get" of a device)
+            values = [self._get_axis_setting(ax, name, now, dev) for ax in axes]
             return " ".join(str(v) for v in values)
         return "RJ BADCOMMAND"
 
     @staticmethod
-    def _get_axis_setting(ax: _Axis, name: str, now: float) -> int | None:
+    def _get_axis_setting(
+        ax: _Axis, name: str, now: float, dev: _Device | None = None
+    ) -> int | None:
         return {
             "pos": ax.reported(now),
             "maxspeed": ax.maxspeed,
             "accel": ax.accel,
             "limit.min": ax.limit_min,
             "limit.max": ax.limit_max,
+            "peripheral_id": dev.spec.peripheral_id if dev is not None else 0,
         }.get(name)
 
     def _cmd_set(
@@ -1060,7 +1166,8 @@ class ZaberEmulator:
     ) -> str:
         if len(args) != 2:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
-        name, raw = args
+        name = _canonical_setting(args[0], dev.spec.firmware)
+        raw = args[1]
         if name not in _DEVICE_SETTINGS and name not in _AXIS_SETTINGS:
             return "RJ BADCOMMAND"
         if name in _READ_ONLY or not _is_int(raw):
@@ -1128,11 +1235,15 @@ class ZaberEmulator:
         target_phys: float,
         kind: Literal["move", "home"],
         now: float,
+        speed: int | None = None,
+        accel: int | None = None,
     ) -> None:
+        # Like the firmware: NI marks an interrupted motion and stays set until
+        # "warnings clear" -- a later, successful move does not clear it.
         if ax.busy(now):
             ax.flags.add("NI")  # the running motion is interrupted
-        else:
-            ax.flags.discard("NI")
+        velocity = protocol.data_to_speed(speed) if speed else ax.speed
+        acceleration = protocol.data_to_accel(accel) if accel else ax.acceleration
         start = ax.phys_at(now)
         ax.halt(now)
         ax.phys = start
@@ -1151,12 +1262,12 @@ class ZaberEmulator:
                 end = target_phys + fault.drift
         if kind == "move" and ax.offset != 0.0:
             end = min(max(end, 0.0), float(ax.spec.limit_max))  # physical end stops
-        profile = _Trapezoid(now, start, end, ax.speed, ax.acceleration)
+        profile = _Trapezoid(now, start, end, velocity, acceleration)
         motion = _Motion(profile, kind, end_flags, stuck_after)
         ax.motion = motion
         self._schedule_settle(dev, ax, motion)
         if fault is not None and fault.kind in ("disconnect", "power"):
-            full = _Trapezoid(now, start, target_phys, ax.speed, ax.acceleration)
+            full = _Trapezoid(now, start, target_phys, velocity, acceleration)
             at = self._real_time(now + fault.fraction * (full.end_time - now))
             if fault.kind == "disconnect":
                 self._schedule(at, self._fault_disconnect)

@@ -20,7 +20,25 @@ Safety rules:
   device after being reported, so the error is raised once and the operator
   re-homes;
 - the idle position is compared to the target: more than ``tolerance_um``
-  off raises :class:`PositionMismatch` (carrying both positions).
+  off raises :class:`PositionMismatch` (carrying both positions);
+- NI (command interrupted) is the firmware's record that a motion was cut short;
+  it stays set until ``warnings clear``.  ``stop()`` clears it once the axis is
+  idle (as Zaber's own library does), and a stale NI is cleared before each move
+  or home, so an NI seen after a motion always belongs to that motion.
+
+Firmware series (read with ``get version`` at connect, :attr:`ZaberAxis.firmware`):
+firmware 6 names the identity setting ``deviceid``, firmware 7 ``device.id`` (the
+driver asks with the name of the series and falls back to the other on
+``BADCOMMAND``); ``system.serial`` is optional.
+
+Stored settings are not changed behind the lab's back: with a configured
+``speed_mm_s`` / ``accel_mm_s2`` the driver passes them with every move
+(``move abs <pos> <speed> <accel>``, firmware 7.25 and later), so the device's
+``maxspeed`` and ``accel`` stay as they are.  On older firmware, which has no
+per-move arguments, it sets ``maxspeed``/``accel`` at connect and sets the values it
+found back at :meth:`ZaberAxis.close` (``ZaberAxis.changed_settings`` lists them).
+Homing always runs at the device's own homing speeds.  ``comm.checksum``, switched
+on for reply checksums when it was off, is switched off again when the port closes.
 """
 
 from __future__ import annotations
@@ -33,9 +51,11 @@ from typing import Any, Literal
 
 from drivers.axis import AxisIdentity, AxisLimits
 from drivers.errors import (
+    CommandRejected,
     DeviceBusy,
     DeviceError,
     MotionTimeout,
+    MoveInterrupted,
     NotReferenced,
     PositionMismatch,
     TargetOutOfRange,
@@ -46,6 +66,22 @@ from drivers.zaber.protocol import Reply
 
 #: Flags of lower precedence than WR: when a reply shows one of them, WR is not set.
 _BELOW_WR = frozenset(protocol.WARNING_PRIORITY[protocol.WARNING_PRIORITY.index("WR") + 1 :])
+
+#: ``move abs <pos> <speed> <accel>`` exists from this firmware version on.
+MOVE_SPEED_ARGS_SINCE = (7, 25)
+
+#: Identity settings by firmware series: (firmware 6 name, firmware 7 name).
+DEVICE_ID_SETTINGS = ("deviceid", "device.id")
+PERIPHERAL_ID_SETTINGS = ("peripheralid", "peripheral.id")
+
+
+def parse_version(text: str) -> tuple[int, int]:
+    """``"7.38"`` -> (7, 38); (0, 0) when the text is not a version."""
+    major, _, minor = text.strip().partition(".")
+    try:
+        return int(major), int(minor.split(".")[0] or 0)
+    except ValueError:
+        return (0, 0)
 
 
 @dataclass(frozen=True)
@@ -58,8 +94,9 @@ class ZaberAxisConfig:
         axis: axis number on the device (1-9).
         microstep_um: size of one microstep (um), from the stage's datasheet.
         tolerance_um: allowed |read-back - target| after a move (um).
-        speed_mm_s: if set, written to the device's ``maxspeed`` at connect (mm/s).
-        accel_mm_s2: if set, written to the device's ``accel`` at connect (mm/s^2).
+        speed_mm_s: if set, the speed of every move (mm/s): a per-move argument on
+            firmware >= 7.25, else written to ``maxspeed`` at connect and restored at close.
+        accel_mm_s2: if set, the acceleration of every move (mm/s^2), like ``speed_mm_s``.
         soft_limits_mm: optional (min, max) travel tighter than the device's (mm).
         timeout_margin_s: added to every derived motion timeout (s).
         timeout_scale: multiplies the kinematic part of motion timeouts
@@ -123,12 +160,15 @@ class PendingMotion:
         target_usteps: move target in microsteps (None for home).
         deadline: ``time.monotonic()`` by which the axis must be idle.
         resent: the command had to be re-sent, so NI (interrupted) is expected.
+        stops: the axis's count of ``stop()`` calls when the motion started (a stop
+            from another thread clears the NI flag; this tells ``finish`` it happened).
     """
 
     kind: Literal["move", "home"]
     target_usteps: int | None
     deadline: float
     resent: bool
+    stops: int = 0
 
 
 class ZaberAxis:
@@ -153,9 +193,16 @@ class ZaberAxis:
         self._connected = False
         self._needs_home = False
         self._limits_usteps = (0, 0)
-        self._speed = 1.0  # microsteps/s
-        self._accel = 1.0  # microsteps/s^2
+        self._speed = 1.0  # microsteps/s, of moves
+        self._accel = 1.0  # microsteps/s^2, of moves
+        self._home_speed = 1.0  # microsteps/s: the device's stored maxspeed
+        self._home_accel = 1.0
+        self._move_args = ""  # " <speed> <accel>" appended to move abs (firmware >= 7.25)
         self._identity: AxisIdentity | None = None
+        self._version: tuple[int, int] = (0, 0)
+        self._stops = 0  # stop() calls so far (see PendingMotion.stops)
+        #: Settings this axis wrote at connect with the value found before (restored at close).
+        self.changed_settings: dict[str, int] = {}
 
     # ------------------------------------------------------------------ basics
 
@@ -190,7 +237,7 @@ class ZaberAxis:
     # ------------------------------------------------------------------ lifecycle
 
     def connect(self) -> ZaberAxis:
-        """Open the port if needed, enable checksums, read identity/limits, apply speeds.
+        """Open the port if needed, read firmware, identity and limits, set up speeds.
 
         Lingering fault flags (FS, FE, FQ, WL) are cleared and the axis is then
         treated as not homed.  Raises DeviceError subclasses naming the axis.
@@ -199,12 +246,15 @@ class ZaberAxis:
         if not self._port.is_open:
             self._port.open()
         self._port.enable_checksums(cfg.device, label=self.label)
-        device_id = self._request("get device.id", axis=0).data
-        serial = self._request("get system.serial", axis=0).data
         version = self._request("get version", axis=0).data
+        self._version = parse_version(version)
+        device_id = self._get_named(DEVICE_ID_SETTINGS, axis=0) or "unknown"
+        serial = self._get_optional("system.serial", axis=0) or "unknown"
+        peripheral = self._get_named(PERIPHERAL_ID_SETTINGS, axis=cfg.axis)
+        model = f"device id {device_id}" + (f", peripheral id {peripheral}" if peripheral else "")
         self._identity = AxisIdentity(
             vendor=self.vendor,
-            model=f"device.id {device_id}",
+            model=model,
             serial=serial,
             firmware=version,
             address=f"{self._port.url} device {cfg.device} axis {cfg.axis}",
@@ -218,14 +268,7 @@ class ZaberAxis:
                 hint="the device's limit settings (Zaber Launcher)",
             )
         self._limits_usteps = (low, high)
-        if cfg.speed_mm_s is not None:
-            data = protocol.speed_to_data(cfg.speed_mm_s * 1000.0 / cfg.microstep_um)
-            self._request(f"set maxspeed {data}")
-        if cfg.accel_mm_s2 is not None:
-            data = protocol.accel_to_data(cfg.accel_mm_s2 * 1000.0 / cfg.microstep_um)
-            self._request(f"set accel {data}")
-        self._speed = protocol.data_to_speed(self._get_int("maxspeed"))
-        self._accel = protocol.data_to_accel(self._get_int("accel"))
+        self._setup_speeds()
         flags = self.warnings()
         if flags & protocol.CLEARABLE_FLAGS:
             self.clear_warnings()
@@ -234,8 +277,82 @@ class ZaberAxis:
         self._connected = True
         return self
 
+    @property
+    def firmware(self) -> tuple[int, int]:
+        """Firmware version (major, minor) read at connect ((0, 0) before)."""
+        return self._version
+
+    def _setup_speeds(self) -> None:
+        """Per-move speed arguments (firmware >= 7.25) or settings written and restored."""
+        cfg = self._cfg
+        stored_speed = self._get_int("maxspeed")
+        stored_accel = self._get_int("accel")
+        self._home_speed = protocol.data_to_speed(stored_speed)
+        self._home_accel = protocol.data_to_accel(stored_accel)
+        speed_data = (
+            protocol.speed_to_data(cfg.speed_mm_s * 1000.0 / cfg.microstep_um)
+            if cfg.speed_mm_s is not None
+            else None
+        )
+        accel_data = (
+            protocol.accel_to_data(cfg.accel_mm_s2 * 1000.0 / cfg.microstep_um)
+            if cfg.accel_mm_s2 is not None
+            else None
+        )
+        self._move_args = ""
+        if speed_data is None and accel_data is None:
+            pass
+        elif self._version >= MOVE_SPEED_ARGS_SINCE:
+            # both arguments go together; the one not configured is the stored setting
+            self._move_args = f" {speed_data or stored_speed} {accel_data or stored_accel}"
+        else:
+            for name, data, stored in (
+                ("maxspeed", speed_data, stored_speed),
+                ("accel", accel_data, stored_accel),
+            ):
+                if data is not None and data != stored:
+                    self.changed_settings.setdefault(name, stored)
+                    self._request(f"set {name} {data}")
+        self._speed = protocol.data_to_speed(speed_data or stored_speed)
+        self._accel = protocol.data_to_accel(accel_data or stored_accel)
+
+    @property
+    def speed_mode(self) -> str:
+        """How configured speeds reach the device: ``"per-move"`` (``move abs`` arguments,
+        firmware >= 7.25), ``"written"`` (set at connect, restored at close) or
+        ``"stored"`` (none configured: the device's own settings)."""
+        if self._move_args:
+            return "per-move"
+        return "written" if self.changed_settings else "stored"
+
+    def read_back(self) -> dict[str, str]:
+        """The settings the station relies on, read from the device now (raw values):
+        ``version``, ``limit.min``, ``limit.max``, ``maxspeed``, ``accel``,
+        ``comm.checksum``, ``pos`` and the active ``warnings``."""
+        self._require_connected()
+        out = {"version": self._request("get version", axis=0).data}
+        for name in ("limit.min", "limit.max", "maxspeed", "accel"):
+            out[name] = self._request(f"get {name}").data
+        out["comm.checksum"] = self._get_optional("comm.checksum", axis=0) or "unknown"
+        out["pos"] = self._status().data
+        out["warnings"] = " ".join(sorted(self.warnings())) or "none"
+        return out
+
+    def restore_settings(self) -> None:
+        """Write back the settings changed at connect (best effort; see the module notes)."""
+        changed, self.changed_settings = self.changed_settings, {}
+        if not self._port.is_open:
+            return
+        for name, value in changed.items():
+            try:
+                self._request(f"set {name} {value}")
+            except DeviceError:
+                pass
+
     def close(self) -> None:
-        """Forget the connection; closes the port if this axis owns it."""
+        """Restore changed settings, forget the connection; closes the port if owned."""
+        if self._connected:
+            self.restore_settings()
         self._connected = False
         if self._owns_port:
             self._port.close()
@@ -288,19 +405,34 @@ class ZaberAxis:
         return self.finish(self.start_move_abs_mm(target_mm, timeout_s))
 
     def stop(self) -> None:
-        """Decelerate to a stop and wait until idle (estop if it does not stop in time)."""
+        """Decelerate to a stop and wait until idle (estop if it does not stop in time).
+
+        The NI flag the stop leaves is then cleared (a motion being waited for in
+        another thread still ends with MoveInterrupted).
+        """
+        self._stops += 1
         self._request("stop")
         timeout = (
             self._speed / self._accel
         ) * self._cfg.timeout_scale * 2.0 + self._cfg.timeout_margin_s
         deadline = time.monotonic() + timeout
-        while self._status().busy:
+        while (status := self._status()).busy:
             if time.monotonic() >= deadline:
                 self._request("estop")
                 raise MotionTimeout(
                     f"still moving {timeout:.2f} s after stop; estop sent", device=self.label
                 )
             time.sleep(self._cfg.poll_interval_s)
+        self._clear_interrupted(status)
+
+    def _clear_interrupted(self, status: Reply) -> None:
+        """Clear the NI a stop leaves behind, unless a fault flag is also set (that one
+        is left for the next motion's check to report)."""
+        if status.warning == protocol.NO_WARNING:
+            return
+        flags = self.warnings()
+        if "NI" in flags and not flags & (protocol.FAULT_FLAGS | protocol.POSITION_LOST_FLAGS):
+            self.clear_warnings()
 
     def estop(self) -> None:
         """Emergency stop (``estop``): halts at once; does not wait."""
@@ -325,14 +457,19 @@ class ZaberAxis:
         status = self._status()
         if status.busy:
             raise DeviceBusy("cannot home: axis already moving", device=self.label)
-        if status.warning in protocol.CLEARABLE_FLAGS:
+        # the shown flag may hide others (WR outranks NI): read the full list
+        if status.warning != protocol.NO_WARNING and self.warnings() & protocol.CLEARABLE_FLAGS:
             self.clear_warnings()
         reply = self._request("home")
         if timeout_s is None:
             low, high = self._limits_usteps
-            kinematic = 2.0 * protocol.move_duration_s(high - low, self._speed, self._accel)
+            kinematic = 2.0 * protocol.move_duration_s(
+                high - low, self._home_speed, self._home_accel
+            )
             timeout_s = kinematic * self._cfg.timeout_scale * 1.5 + self._cfg.timeout_margin_s
-        return PendingMotion("home", None, time.monotonic() + timeout_s, reply.attempts > 1)
+        return PendingMotion(
+            "home", None, time.monotonic() + timeout_s, reply.attempts > 1, self._stops
+        )
 
     def start_move_abs_mm(self, target_mm: float, timeout_s: float | None = None) -> PendingMotion:
         """Check and send ``move abs`` without waiting; pass the result to :meth:`finish`.
@@ -347,16 +484,17 @@ class ZaberAxis:
             raise NotReferenced(
                 f"refusing to move to {target_mm} mm: axis not homed", device=self.label
             )
-        if status.warning != "--":
-            self._raise_for_flags(
-                self.warnings(), f"before moving to {target_mm} mm", ignore={"NI"}
-            )
         if status.busy:
             raise DeviceBusy(
                 f"cannot move to {target_mm} mm: axis already moving", device=self.label
             )
+        if status.warning != "--":
+            flags = self.warnings()
+            self._raise_for_flags(flags, f"before moving to {target_mm} mm", ignore={"NI"})
+            if "NI" in flags:  # a stale interruption (an earlier stop): not this move's
+                self.clear_warnings()
         start = status.data_int()
-        reply = self._request(f"move abs {target}")
+        reply = self._request(f"move abs {target}{self._move_args}")
         if reply.warning == "WR":  # power lost between the check and the move
             self._quiet_stop()
             self._needs_home = True
@@ -364,7 +502,9 @@ class ZaberAxis:
         if timeout_s is None:
             kinematic = protocol.move_duration_s(target - start, self._speed, self._accel)
             timeout_s = kinematic * self._cfg.timeout_scale * 1.5 + self._cfg.timeout_margin_s
-        return PendingMotion("move", target, time.monotonic() + timeout_s, reply.attempts > 1)
+        return PendingMotion(
+            "move", target, time.monotonic() + timeout_s, reply.attempts > 1, self._stops
+        )
 
     def check_target_mm(self, target_mm: float) -> int:
         """Validate a target (mm) against the limits; return it in microsteps.
@@ -389,11 +529,14 @@ class ZaberAxis:
         ignore = {"NI"} if pending.resent else set()
         if pending.kind == "home":
             self._wait(pending.deadline, context="homing", ignore=ignore)
+            self._check_not_stopped(pending, "homing")
             self._needs_home = False
             return self.position_mm()
         assert pending.target_usteps is not None
         target_mm = self.usteps_to_mm(pending.target_usteps)
-        self._wait(pending.deadline, context=f"moving to {target_mm:.4f} mm", ignore=ignore)
+        context = f"moving to {target_mm:.4f} mm"
+        self._wait(pending.deadline, context=context, ignore=ignore)
+        self._check_not_stopped(pending, context)
         # read back with a fresh query once idle (not the data of the poll that saw IDLE)
         final = self._status()
         if final.busy:
@@ -411,6 +554,13 @@ class ZaberAxis:
                 device=self.label,
             )
         return actual_mm
+
+    def _check_not_stopped(self, pending: PendingMotion, context: str) -> None:
+        """MoveInterrupted if ``stop()`` ran during the motion (it cleared the NI flag)."""
+        if self._stops != pending.stops:
+            raise MoveInterrupted(
+                f"{context}: stopped by a stop command", device=self.label, flags={"NI"}
+            )
 
     # ------------------------------------------------------------------ flags
 
@@ -445,6 +595,23 @@ class ZaberAxis:
 
     def _get_int(self, setting: str) -> int:
         return self._request(f"get {setting}").data_int()
+
+    def _get_optional(self, setting: str, *, axis: int | None = None) -> str | None:
+        """A setting's value, or None when the device rejects it (unknown to this firmware,
+        or not available on this axis: identity extras must not stop a connect)."""
+        try:
+            return self._request(f"get {setting}", axis=axis).data
+        except CommandRejected:
+            return None
+
+    def _get_named(self, names: tuple[str, str], *, axis: int) -> str | None:
+        """A setting firmware 7 renamed: the series' own name first, then the other."""
+        ordered = names if self._version < (7, 0) else (names[1], names[0])
+        for name in ordered:
+            value = self._get_optional(name, axis=axis)
+            if value is not None:
+                return value
+        return None
 
     def _status(self) -> Reply:
         return self._request("get pos")

@@ -7,10 +7,13 @@ no flow control; real ports are opened with an exclusive lock
 (``exclusive=True``, a ``flock`` on POSIX) so a second program cannot talk on
 the same chain.
 
-Every command goes out with a message id (1-99, cycling) and a checksum.
+Every command goes out with a message id (1-99, cycling) and a checksum (devices
+check a command's checksum whatever their ``comm.checksum`` setting).
 A reply is accepted only when its device, axis and id match the command and,
 once :meth:`ZaberPort.enable_checksums` ran for that device, its checksum is
-present and right.  Anything else on the line -- alerts, info messages, late
+present and right.  ``comm.checksum`` is a setting the device stores: when the
+port had to turn it on, :meth:`ZaberPort.close` turns it off again, so the lab's
+stored configuration is left as it was found.  Anything else on the line -- alerts, info messages, late
 replies to earlier attempts, other devices' replies, corrupted lines -- is
 discarded and counted in :attr:`ZaberPort.stats`.
 
@@ -103,6 +106,8 @@ class ZaberPort:
         self._buffer = bytearray()
         self._next_id = 0
         self._checksummed: set[int] = set()
+        #: devices whose comm.checksum this port switched on (switched off at close)
+        self._checksum_restore: set[int] = set()
         self._lost: str | None = None  # why the port was closed under us, if it was
         self.stats = PortStats()
         #: Last alerts received (they are not needed for operation; kept for diagnostics).
@@ -176,8 +181,9 @@ class ZaberPort:
         )
 
     def close(self) -> None:
-        """Close the port (idempotent)."""
+        """Restore ``comm.checksum`` where this port changed it; close the port (idempotent)."""
         with self._lock:
+            self.restore_settings()
             ser, self._serial = self._serial, None
             if ser is not None:
                 try:
@@ -249,19 +255,52 @@ class ZaberPort:
         failure.message = f"{failure.message} ({tries}{extra})"
         raise failure
 
-    def enable_checksums(self, device: int, *, label: str | None = None) -> None:
-        """Make ``device`` append checksums to its replies (``set comm.checksum 1``).
+    def enable_checksums(self, device: int, *, label: str | None = None) -> bool:
+        """Make ``device`` append checksums to its replies; True if it does.
 
-        From then on replies from ``device`` without a valid checksum are rejected.
+        Reads ``comm.checksum`` first; only when it is 0 is it set to 1 (and set back
+        to 0 by :meth:`close`).  From then on replies from ``device`` without a valid
+        checksum are rejected.  A device that rejects the setting keeps answering
+        without checksums (False; replies are still parsed strictly).
         """
         label = label or f"{self._name} device {device}"
         if device in self._checksummed:
-            return
-        reply = self.request(device, 0, "set comm.checksum 1", label=label, require_checksum=False)
-        if reply.rejected:
-            raise protocol.rejection_error(reply, command="set comm.checksum 1", device=label)
+            return True
+        current = self.request(device, 0, "get comm.checksum", label=label, require_checksum=False)
+        if current.rejected:
+            return False
+        if current.data.strip() != "1":
+            reply = self.request(
+                device, 0, "set comm.checksum 1", label=label, require_checksum=False
+            )
+            if reply.rejected:
+                return False
+            with self._lock:
+                self._checksum_restore.add(device)
         with self._lock:
             self._checksummed.add(device)
+        return True
+
+    def restore_settings(self) -> None:
+        """Set ``comm.checksum`` back to 0 on the devices where this port switched it on
+        (best effort: a device that does not answer keeps it)."""
+        with self._lock:
+            devices, self._checksum_restore = sorted(self._checksum_restore), set()
+            if self._serial is None:
+                return
+            for device in devices:
+                try:
+                    self.request(
+                        device,
+                        0,
+                        "set comm.checksum 0",
+                        timeout_s=0.3,
+                        retry=False,
+                        require_checksum=False,
+                    )
+                except (NoReply, GarbledReply, ConnectionLost, PortUnavailable):
+                    pass
+                self._checksummed.discard(device)
 
     def broadcast(self, text: str, *, listen_s: float = 0.2) -> list[Reply]:
         """Send ``text`` to every device (device 0) and collect replies for ``listen_s`` seconds."""
@@ -285,8 +324,17 @@ class ZaberPort:
                     self._count_discarded(message)
 
     def discover(self, *, listen_s: float = 0.2) -> dict[int, str]:
-        """Device numbers on the chain mapped to their device ids (``get device.id``)."""
-        return {r.device: r.data for r in self.broadcast("get device.id", listen_s=listen_s)}
+        """Device numbers on the chain mapped to their device ids.
+
+        Asks with both names (firmware 7 ``device.id``, firmware 6 ``deviceid``): each
+        device answers one of them and rejects the other.
+        """
+        found: dict[int, str] = {}
+        for setting in ("device.id", "deviceid"):
+            for reply in self.broadcast(f"get {setting}", listen_s=listen_s):
+                if not reply.rejected:
+                    found.setdefault(reply.device, reply.data)
+        return dict(sorted(found.items()))
 
     # ------------------------------------------------------------------ internals
 

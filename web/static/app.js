@@ -14,9 +14,13 @@ const state = {
   jobId: null,
   lastStep: null,      // last SSE step id seen (Last-Event-ID on reconnect)
   stream: null,        // AbortController of the event stream
-  points: new Map(),   // frame index -> {u, la, q}
+  points: new Map(),   // frame index -> {u, la, q, w}
+  model: null,         // {u: [], w: [], focus} once the result is known
   finalShown: null,
   pollTimer: null,
+  frameWanted: null,   // latest analysed frame to show with its corners
+  frameShown: null,
+  frameLoading: false,
 };
 
 const $ = (id) => document.getElementById(id);
@@ -83,10 +87,20 @@ async function init() {
   }
   await loadSchema();
   const jobs = await refreshJobs();
-  // an operator who opens the page during a run sees that run at once
+  // a job's URL (?job=ID) shows that job; else an operator who opens the page during a
+  // run sees that run at once
+  const wanted = jobFromUrl();
   const active = jobs.find((job) => job.state === "running" || job.state === "paused");
-  if (active && state.jobId === null) follow(active.id);
+  if (wanted !== null && state.jobId === null) follow(wanted);
+  else if (active && state.jobId === null) follow(active.id);
+  refreshDevices();
   setInterval(refreshDevices, 5000);
+}
+
+function jobFromUrl() {
+  const text = new URLSearchParams(window.location.search).get("job");
+  const id = Number(text);
+  return text && Number.isInteger(id) && id > 0 ? id : null;
 }
 
 async function loadSchema() {
@@ -117,13 +131,74 @@ function showDevices(text) {
   badge.className = "badge " + (text === "down" ? "down" : text === "connected" || text === "busy" ? "ok" : "");
 }
 
+// The badge and the devices panel from one GET /devices (the stages are asked once);
+// /healthz (always open) when reading needs a key the page does not have.
 async function refreshDevices() {
+  const status = await refreshDevicePanel();
+  if (status !== null) {
+    showDevices(status);
+    return;
+  }
   try {
     const { body } = await api("/healthz");
     showDevices(body.devices);
   } catch (err) {
     showDevices("down");
   }
+}
+
+// ------------------------------------------------------------------ devices panel
+
+function setRow(id, cells) {
+  const tds = $(id).querySelectorAll("td");
+  cells.forEach((text, k) => { tds[k + 1].textContent = text; });
+}
+
+function yesNo(value) {
+  return value === true ? "homed" : value === false ? "not homed" : "?";
+}
+
+// Fills the devices panel; returns the devices' state for the badge (connected, busy,
+// opening, down), or null when the devices cannot be read (no key).
+async function refreshDevicePanel() {
+  let info = null;
+  let note = "";
+  let status = null;
+  try {
+    ({ body: info } = await api("/devices"));
+    status = info.busy ? "busy" : "connected";
+  } catch (err) {
+    note = err.message;
+    info = (err.body && err.body.context && err.body.context.devices) || null;
+    if (err.body && err.body.code === "devices_opening") status = "opening";
+    else if (err.status === 503) status = "down";
+  }
+  if (!info) {
+    $("devices-note").textContent = note;
+    return status;
+  }
+  const cam = info.camera || {};
+  const temp = cam.temperature_c !== undefined && cam.temperature_c !== null
+    ? `${fmt(cam.temperature_c, 1)} °C` : "temperature not reported";
+  const roi = cam.roi ? `ROI ${cam.roi.width}×${cam.roi.height}` : "";
+  setRow("dev-camera", [
+    [cam.vendor, cam.model].filter(Boolean).join(" ") + (cam.serial ? `, serial ${cam.serial}` : ""),
+    roi, "", [temp, cam.error].filter(Boolean).join("; "),
+  ]);
+  const rail = info.rail || {};
+  const railMm = info.busy && info.rail_mm !== undefined && info.rail_mm !== null ? info.rail_mm : rail.position_mm;
+  setRow("dev-rail", [
+    (rail.identity && (rail.identity.name || rail.identity.device_id)) || "",
+    railMm === null || railMm === undefined ? "n/a" : `${fmt(railMm, 3)} mm`
+      + (!info.busy && rail.object_distance_mm ? ` (u ${fmt(rail.object_distance_mm, 1)} mm)` : ""),
+    yesNo(rail.homed), rail.error || "",
+  ]);
+  const xy = info.xy_stage || {};
+  const pos = Array.isArray(xy.position_mm) ? `${fmt(xy.position_mm[0], 3)}, ${fmt(xy.position_mm[1], 3)} mm` : "n/a";
+  setRow("dev-xy", ["", pos, yesNo(xy.homed), xy.error || ""]);
+  $("devices-note").textContent = note || (info.busy ? `in use by job ${info.active_job ?? ""} (positions as last read)` : "");
+  $("devices-table").dataset.updated = String(Date.now());
+  return status;
 }
 
 // ------------------------------------------------------------------ the form
@@ -222,7 +297,15 @@ function follow(jobId) {
   state.jobId = jobId;
   state.lastStep = null;
   state.points = new Map();
+  state.model = null;
   state.finalShown = null;
+  state.frameWanted = null;
+  state.frameShown = null;
+  const url = `${window.location.pathname}?job=${jobId}`;
+  if (window.location.search !== `?job=${jobId}`) window.history.replaceState(null, "", url);
+  $("job-link").textContent = window.location.origin + url;
+  $("job-link").href = url;
+  $("frame-caption").textContent = "waiting for the first analysed frame";
   $("job").hidden = false;
   $("result").hidden = true;
   $("job-id").textContent = String(jobId);
@@ -230,7 +313,7 @@ function follow(jobId) {
   showPhase([]);
   $("job-error").textContent = "";
   $("progress").value = 0;
-  drawPlot();
+  drawPlots();
   openStream(jobId);
   pollStatus();
   state.pollTimer = setInterval(pollStatus, 2000);
@@ -300,12 +383,16 @@ function handleBlock(block) {
 function onEvent(type, d) {
   if (type === "step") {
     setProgress(d.frames_done, d.frames_total);
-    if (d.summary) addPoint(d.summary);
+    if (d.summary) {
+      addPoint(d.summary);
+      showFrame(d.summary.index);
+    }
     const rail = d.actual_mm !== undefined ? `rail ${fmt(d.actual_mm, 3)} mm` : "";
     const eta = d.eta_s !== undefined && d.eta_s !== null ? `, ETA ${Math.round(d.eta_s)} s` : "";
     $("progress-text").textContent = `${d.frames_done} of ${d.frames_total} frames, ${rail}${eta}`;
   } else if (type === "analysis") {
     addPoint(d);
+    showFrame(d.index);
   } else if (type === "phase") {
     if (state.finalShown !== state.jobId) showPhase([d.phase]);
   } else if (type === "state") {
@@ -385,6 +472,7 @@ async function onFinal(jobState) {
     // the status line keeps its last text
   }
   refreshJobs();
+  refreshDevicePanel();
   if (jobState === "succeeded") {
     try {
       const { body: result } = await api(`/jobs/${state.jobId}/result`);
@@ -397,26 +485,112 @@ async function onFinal(jobState) {
   }
 }
 
-// ------------------------------------------------------------------ La(u) plot
+// ------------------------------------------------------------------ live frame
+
+// Show frame `index` (downscaled) with the corners its analysis found; while a frame
+// loads, later requests replace each other, so the view always ends on the latest.
+function showFrame(index) {
+  if (index === undefined || index === null) return;
+  state.frameWanted = index;
+  if (!state.frameLoading) loadFrames();
+}
+
+function loadImage(url) {
+  return new Promise((resolve, reject) => {
+    const img = new Image();
+    img.onload = () => resolve(img);
+    img.onerror = () => reject(new Error("the frame preview cannot be loaded"));
+    img.src = url;
+  });
+}
+
+async function loadFrames() {
+  state.frameLoading = true;
+  try {
+    while (state.frameWanted !== null && state.frameWanted !== state.frameShown) {
+      const jobId = state.jobId;
+      const index = state.frameWanted;
+      const [url, reply] = await Promise.all([
+        resourceUrl(`/jobs/${jobId}/frames/${index}?width=640`),
+        api(`/jobs/${jobId}/frames/${index}/corners`),
+      ]);
+      const img = await loadImage(url);
+      if (jobId !== state.jobId) return;
+      drawFrame(img, reply.body);
+      state.frameShown = index;
+    }
+  } catch (err) {
+    $("frame-caption").textContent = `frame preview: ${err.message}`;
+  } finally {
+    state.frameLoading = false;
+  }
+}
+
+function drawFrame(img, corners) {
+  const canvas = $("frame-view");
+  canvas.width = img.naturalWidth;
+  canvas.height = img.naturalHeight;
+  const ctx = canvas.getContext("2d");
+  ctx.drawImage(img, 0, 0);
+  const scale = corners.width ? img.naturalWidth / corners.width : 1;
+  const mark = (points, colour) => {
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = 1.5;
+    for (const [x, y] of points) {
+      const cx = x * scale;
+      const cy = y * scale;
+      ctx.beginPath();
+      ctx.moveTo(cx - 5, cy); ctx.lineTo(cx + 5, cy);
+      ctx.moveTo(cx, cy - 5); ctx.lineTo(cx, cy + 5);
+      ctx.stroke();
+    }
+  };
+  mark(corners.standard || [], "#00e676");
+  mark(corners.reference || [], "#ff4081");
+  const n = (corners.standard || []).length + (corners.reference || []).length;
+  canvas.dataset.frame = String(corners.index);
+  canvas.dataset.corners = String(n);
+  const rail = corners.rail_mm !== null && corners.rail_mm !== undefined ? `, rail ${fmt(corners.rail_mm, 3)} mm` : "";
+  $("frame-caption").textContent = corners.analysed
+    ? `frame ${corners.index}${rail}: ${(corners.standard || []).length} standard (green) and `
+      + `${(corners.reference || []).length} reference (pink) corner points`
+      + (corners.error ? ` (${corners.error})` : "")
+    : `frame ${corners.index}${rail}: not analysed yet`;
+}
+
+// ------------------------------------------------------------------ live plots
 
 function addPoint(s) {
   if (s.index === undefined || s.index === null) return;
-  state.points.set(s.index, { u: s.object_distance_mm, la: s.La_mm, q: s.Q });
-  drawPlot();
+  // the edge spread (what the defocus model fits); older servers send only edge_width_px
+  const w = s.edge_spread_px ?? s.edge_width_px;
+  state.points.set(s.index, { u: s.object_distance_mm, la: s.La_mm, q: s.Q, w });
+  drawPlots();
 }
 
-function drawPlot() {
-  const canvas = $("la-plot");
+function drawPlots() {
+  const all = [...state.points.values()];
+  const la = all.filter((p) => p.u !== null && p.u !== undefined && p.la !== null && p.la !== undefined);
+  $("la-note").textContent = all.length && !la.length
+    ? "La is not measurable in these frames (is the reference corner in view?)"
+    : `${la.length} frames with La`;
+  drawScatter($("la-plot"), la.map((p) => [p.u, p.la]), "La (mm)", null, null);
+  const w = all.filter((p) => p.u !== null && p.u !== undefined && p.w !== null && p.w !== undefined);
+  const model = state.model;
+  $("width-note").textContent = `${w.length} frames with an edge spread`
+    + (model && model.focus !== null ? `; defocus-model focus plane u0 = ${fmt(model.focus, 2)} mm` : "");
+  drawScatter($("width-plot"), w.map((p) => [p.u, p.w]), "edge spread (px)",
+    model ? model.points : null, model ? model.focus : null);
+}
+
+// Points [[x, y]], an optional model line [[x, y]] and a vertical focus line at x = focus.
+function drawScatter(canvas, pts, ylabel, line, focus) {
   const ctx = canvas.getContext("2d");
   const W = canvas.width;
   const H = canvas.height;
   ctx.clearRect(0, 0, W, H);
-  const pts = [...state.points.values()].filter((p) => p.u !== null && p.la !== null);
-  const measured = [...state.points.values()].length;
-  $("la-note").textContent = measured && !pts.length
-    ? "La is not measurable in these frames (is the reference corner in view?)"
-    : `${pts.length} frames with La`;
   canvas.dataset.points = String(pts.length);
+  canvas.dataset.modelPoints = String(line ? line.length : 0);
   const m = { l: 60, r: 15, t: 15, b: 40 };
   ctx.strokeStyle = "#888";
   ctx.strokeRect(m.l, m.t, W - m.l - m.r, H - m.t - m.b);
@@ -424,27 +598,45 @@ function drawPlot() {
   ctx.font = "12px sans-serif";
   ctx.fillText("object distance u (mm)", W / 2 - 60, H - 8);
   ctx.save();
-  ctx.translate(14, H / 2 + 20);
+  ctx.translate(14, H / 2 + 30);
   ctx.rotate(-Math.PI / 2);
-  ctx.fillText("La (mm)", 0, 0);
+  ctx.fillText(ylabel, 0, 0);
   ctx.restore();
-  if (!pts.length) return;
-  let [u0, u1] = [Math.min(...pts.map((p) => p.u)), Math.max(...pts.map((p) => p.u))];
-  let [y0, y1] = [Math.min(...pts.map((p) => p.la)), Math.max(...pts.map((p) => p.la))];
-  if (u1 === u0) { u0 -= 1; u1 += 1; }
+  const every = pts.concat(line || []);
+  if (!every.length) return;
+  let [x0, x1] = [Math.min(...every.map((p) => p[0])), Math.max(...every.map((p) => p[0]))];
+  let [y0, y1] = [Math.min(...every.map((p) => p[1])), Math.max(...every.map((p) => p[1]))];
+  if (x1 === x0) { x0 -= 1; x1 += 1; }
   if (y1 === y0) { y0 -= 0.01; y1 += 0.01; }
   const pad = (y1 - y0) * 0.1;
   y0 -= pad; y1 += pad;
-  const x = (u) => m.l + ((u - u0) / (u1 - u0)) * (W - m.l - m.r);
+  const x = (v) => m.l + ((v - x0) / (x1 - x0)) * (W - m.l - m.r);
   const y = (v) => H - m.b - ((v - y0) / (y1 - y0)) * (H - m.t - m.b);
-  ctx.fillText(fmt(u0, 1), m.l - 10, H - m.b + 15);
-  ctx.fillText(fmt(u1, 1), W - m.r - 30, H - m.b + 15);
+  ctx.fillText(fmt(x0, 1), m.l - 10, H - m.b + 15);
+  ctx.fillText(fmt(x1, 1), W - m.r - 30, H - m.b + 15);
   ctx.fillText(fmt(y1, 3), 18, m.t + 10);
   ctx.fillText(fmt(y0, 3), 18, H - m.b);
-  ctx.fillStyle = "#1565c0";
-  for (const p of pts.sort((a, b) => a.u - b.u)) {
+  if (focus !== null && focus !== undefined && focus >= x0 && focus <= x1) {
+    ctx.strokeStyle = "#c62828";
+    ctx.setLineDash([5, 4]);
     ctx.beginPath();
-    ctx.arc(x(p.u), y(p.la), 3.5, 0, 2 * Math.PI);
+    ctx.moveTo(x(focus), m.t);
+    ctx.lineTo(x(focus), H - m.b);
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
+  if (line && line.length) {
+    ctx.strokeStyle = "#ef6c00";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    line.forEach(([u, v], k) => (k ? ctx.lineTo(x(u), y(v)) : ctx.moveTo(x(u), y(v))));
+    ctx.stroke();
+    ctx.lineWidth = 1;
+  }
+  ctx.fillStyle = "#1565c0";
+  for (const [u, v] of pts.slice().sort((a, b) => a[0] - b[0])) {
+    ctx.beginPath();
+    ctx.arc(x(u), y(v), 3.5, 0, 2 * Math.PI);
     ctx.fill();
   }
 }
@@ -454,6 +646,41 @@ function drawPlot() {
 function fmt(value, digits) {
   if (value === null || value === undefined || !Number.isFinite(Number(value))) return "n/a";
   return Number(value).toFixed(digits);
+}
+
+// The data-sheet values against what the sweep measured (issue 11).
+const PRIOR_LABELS = {
+  main_focal_mm: "main-lens focal length F",
+  mla_focal_mm: "microlens focal length f",
+  rail_zero_object_distance_mm: "rail zero object distance",
+};
+
+function showPriors(priors) {
+  const table = $("priors-table");
+  const tbody = table.querySelector("tbody");
+  tbody.innerHTML = "";
+  let n = 0;
+  for (const [key, label] of Object.entries(PRIOR_LABELS)) {
+    const p = priors[key];
+    if (!p) continue;
+    n += 1;
+    const tr = document.createElement("tr");
+    tr.id = "prior-" + key;
+    const check = p.contradicted ? "CONTRADICTED" : (p.determined_by === "prior" ? "data sheet used" : "ok");
+    const cells = [
+      [label, ""], [fmt(p.datasheet, 4), "num"], ["± " + fmt(p.tolerance, 4), "num"],
+      [fmt(p.calibrated, 4), "num"], ["± " + fmt(p.uncertainty, 4), "num"],
+      [fmt(p.z, 1), "num"], [check, p.contradicted ? "error" : ""],
+    ];
+    for (const [text, cls] of cells) {
+      const td = document.createElement("td");
+      td.textContent = text;
+      if (cls) td.className = cls;
+      tr.appendChild(td);
+    }
+    tbody.appendChild(tr);
+  }
+  table.hidden = n === 0;
 }
 
 function showResult(jobId, r) {
@@ -466,7 +693,9 @@ function showResult(jobId, r) {
     ["res-p", "p (patch size)", r.patch_size_px, u.patch_size_px, "px", 4],
     ["res-focus-u", "focus plane: object distance u", focus.object_distance_mm,
       focus.uncertainty_mm, "mm", 3],
-    ["res-focus-rail", "focus plane: rail position", focus.rail_mm, focus.uncertainty_mm, "mm", 3],
+    ["res-focus-rail", "focus plane: rail position", focus.rail_mm,
+      focus.rail_uncertainty_mm ?? focus.uncertainty_mm, "mm", 3],
+    ["res-L", "L (main lens to MLA)", r.L_mm, u.L_mm, "mm", 4],
   ];
   const tbody = $("result-table").querySelector("tbody");
   tbody.innerHTML = "";
@@ -482,6 +711,7 @@ function showResult(jobId, r) {
     }
     tbody.appendChild(tr);
   }
+  showPriors(r.priors || {});
   for (const w of r.warnings || []) {
     const tr = document.createElement("tr");
     const td = document.createElement("td");
@@ -492,6 +722,14 @@ function showResult(jobId, r) {
     tbody.appendChild(tr);
   }
   $("result").hidden = false;
+  const curves = r.curves || {};
+  const us = curves.object_distance_mm || [];
+  const ws = curves.edge_spread_model_px || curves.edge_width_model_px || [];
+  state.model = {
+    points: us.map((u, k) => [u, ws[k]]).filter(([u, w]) => u !== null && w !== null && w !== undefined),
+    focus: focus.object_distance_mm ?? null,
+  };
+  drawPlots();
   showLinks(jobId, true);
 }
 
@@ -507,6 +745,7 @@ async function showLinks(jobId, succeeded) {
         ["disparity plot Q(u)", `${base}/plots/disparity.png`, true],
         ["rendered, calibrated p", `${base}/render.png?p=calibrated`, true],
         ["rendered, designed p", `${base}/render.png?p=designed`, true],
+        ["calibration report (HTML)", `${base}/report.html`, false],
         ["result JSON", `${base}/result`, false],
         ["sweep archive (zip)", `${base}/archive`, false],
       ]

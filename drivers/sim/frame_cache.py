@@ -1,15 +1,16 @@
 """Simulation only: a frame cache for the simulated camera, so repeated sweeps are fast.
 
 The plenoptic renderer takes ~1 s for a 1200×400 frame and ~4 s for 3000×1000.
-:class:`CachedScene` wraps a :class:`station.sim_scene.PlenopticScene` and keeps
+:class:`CachedScene` wraps a scene (:class:`drivers.sim.plenoptic_scene.PlenopticScene`) and keeps
 each rendered frame on disk (``.npy``), keyed by everything the picture depends
 on: the simulator camera (optics, sensor, MLA, board), the bench state the
 camera sees (object distance to 0.1 µm, board offset to 0.1 µm, white or not),
 the ROI, bit depth, exposure and gain. The same bench state therefore gives
 the same frame, noise included (the noise seed is derived from the key rather
 than from the frame counter); any other state -- a drifted rail, another
-exposure -- is rendered afresh. Used by the tests, the benchmark and
-``lfcal sweep --sim-frame-cache DIR``; real cameras are never affected.
+exposure -- is rendered afresh. The simulated camera uses it when its configuration
+says so (``[camera] frame_cache = "DIR"``, or ``--sim-frame-cache DIR`` on the command
+line, which sets that key); real cameras are never affected.
 
 Files are written atomically (temporary file, rename), so several processes
 can share one cache directory.
@@ -20,19 +21,14 @@ from __future__ import annotations
 import hashlib
 import os
 import secrets
-import threading
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from station.config import StationConfig
-from station.sim_scene import PlenopticScene
-
-_PATCH_LOCK = threading.Lock()
+from drivers.sim.sim_camera import Scene
 
 
 class CachedScene:
@@ -43,18 +39,19 @@ class CachedScene:
         cache_dir: directory of the ``.npy`` files (created).
     """
 
-    def __init__(self, scene: PlenopticScene, cache_dir: str | os.PathLike[str]) -> None:
+    def __init__(self, scene: Scene, cache_dir: str | os.PathLike[str]) -> None:
         self.scene = scene
         self.cache_dir = Path(cache_dir)
         self.cache_dir.mkdir(parents=True, exist_ok=True)
-        self._camera_key = hashlib.sha256(repr(scene.camera).encode()).hexdigest()[:16]
+        what = getattr(scene, "camera", scene)  # the simulator camera: optics, sensor, MLA
+        self._camera_key = hashlib.sha256(repr(what).encode()).hexdigest()[:16]
         self.hits = 0
         self.misses = 0
 
     @property
     def camera(self) -> Any:
         """The simulator camera of the wrapped scene."""
-        return self.scene.camera
+        return getattr(self.scene, "camera", None)
 
     @property
     def name(self) -> str:
@@ -131,40 +128,4 @@ class CachedScene:
         return image
 
 
-@contextmanager
-def cached_scenes(cache_dir: str | os.PathLike[str]) -> Iterator[None]:
-    """While active, ``station.sim_scene.scene_from_preset`` returns :class:`CachedScene`\\ s.
-
-    The device factory builds the simulated camera's scene through that function;
-    this is how the cache is put in front of it (one process-wide lock).
-    """
-    import station.sim_scene as sim_scene
-
-    original = sim_scene.scene_from_preset
-
-    def cached(*args: Any, **kwargs: Any) -> Any:
-        return CachedScene(original(*args, **kwargs), cache_dir)
-
-    with _PATCH_LOCK:
-        sim_scene.scene_from_preset = cached
-        try:
-            yield
-        finally:
-            sim_scene.scene_from_preset = original
-
-
-def open_devices_with_frame_cache(
-    config: StationConfig,
-    cache_dir: str | os.PathLike[str],
-    *,
-    emulator_speedup: float = 1.0,
-    home: bool | None = None,
-) -> Any:
-    """``station.devices.open_devices`` with the simulated camera's frames cached."""
-    from station.devices import open_devices
-
-    with cached_scenes(cache_dir):
-        return open_devices(config, home=home, emulator_speedup=emulator_speedup)
-
-
-__all__ = ["CachedScene", "cached_scenes", "open_devices_with_frame_cache"]
+__all__ = ["CachedScene"]

@@ -1,10 +1,10 @@
 """The plenoptic simulator as the scene of the simulated camera.
 
 :class:`PlenopticScene` adapts :func:`calibration.simulator.render_frame` to the
-:class:`drivers.sim.sim_camera.Scene` protocol (structurally: this module imports
-nothing from ``drivers``).  It lives in ``station`` because ``drivers`` must not import
-the calibration core (import-linter layers); the station injects it into the simulated
-bench.
+:class:`drivers.sim.sim_camera.Scene` protocol.  It is the only place where the
+simulated twins use the calibration core (its simulator): the import-linter layers
+contract makes that one exception for ``drivers.sim``, and production drivers stay
+independent of ``calibration`` (a forbidden contract).
 
 With the reference exposure, no gain and the sensor's native bit depth a render is
 exactly ``render_frame(camera, object_distance_mm=u, board_offset_mm=offset,
@@ -28,7 +28,7 @@ from calibration.simulator import SimCamera, render_frame
 
 
 class _State(Protocol):
-    """What :meth:`PlenopticScene.render` reads from ``drivers.sim.sim_camera.SceneState``."""
+    """What :meth:`PlenopticScene.render` reads from :class:`drivers.sim.sim_camera.SceneState`."""
 
     @property
     def object_distance_mm(self) -> float: ...
@@ -56,6 +56,12 @@ class PlenopticScene:
     def sensor_size_px(self) -> tuple[int, int]:
         """Full sensor ``(width, height)`` in px."""
         return (self.camera.sensor.width, self.camera.sensor.height)
+
+    @property
+    def principal_point_px(self) -> tuple[float, float]:
+        """Where the optical axis meets the full sensor (x, y) in px."""
+        x, y = self.camera.sensor.pp
+        return (float(x), float(y))
 
     @property
     def bit_depth(self) -> int:

@@ -1,0 +1,223 @@
+"""The sweeps of the focus benchmark and the data-sheet offsets they are calibrated with.
+
+Three renderers write ``lfcal-sweep/1`` archives with a ``truth.json``:
+
+* ``sim``: the project's simulator (``python -m station.cli simulate``, i.e.
+  ``lfcal simulate``), Gaussian PSF, analytic pixel integration;
+* ``indsim``: the independent analytic renderer (``bench/crosscheck/indsim.py``),
+  PSF per ray on the board, 2×2 sub-pixels × N×N aperture cells;
+* ``mcsim``: the Monte-Carlo ray tracer (``bench/mcsim``), 30 rays per point
+  sample, 2×2 point samples per pixel, no PSF: the blur carries ray noise.
+
+On each renderer three accuracy sweeps cover, together, what issue 10 asks
+for: a focus plane between rail steps, a sweep that starts or ends about 8 mm
+from the focus plane, a 2 mm step, a standard-corner-only window (F and the
+rail zero must then fall back to the data sheet) and high noise. Each
+two-corner sweep is calibrated with the exact data sheet and with four wrong
+ones (issue 11: F ±2 %, f ±2 %, rail zero ±2 mm, alone and combined); the
+standard-only sweep with the exact and the combined wrong data sheet.
+
+The coverage sweeps are cheap (small windows, 31 frames 2 mm apart) and vary,
+seed by seed, the noise and the phase of the rail steps against the focus
+plane (the start moves by the golden-ratio fraction of a step): each is
+calibrated with the exact data sheet and with one wrong one (the four
+combinations in turn). A wrong data sheet is only a different manifest (the
+frames are the same), so its archive shares the base render's images.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+RENDERERS = ("sim", "indsim", "mcsim")
+
+
+@dataclass(frozen=True)
+class PriorOffset:
+    """A data sheet off the rendered camera: F and f by a fraction, the rail zero by mm."""
+
+    name: str
+    slug: str
+    main_focal_rel: float = 0.0
+    mla_focal_rel: float = 0.0
+    rail_zero_mm: float = 0.0
+
+    @property
+    def exact(self) -> bool:
+        return self.main_focal_rel == 0.0 and self.mla_focal_rel == 0.0 and self.rail_zero_mm == 0.0
+
+
+EXACT = PriorOffset("exact", "exact")
+OFF = (
+    PriorOffset("F+2%", "F+2pct", main_focal_rel=0.02),
+    PriorOffset("f-2%", "f-2pct", mla_focal_rel=-0.02),
+    PriorOffset("rail+2mm", "rail+2mm", rail_zero_mm=2.0),
+    PriorOffset(
+        "F-2%,f+2%,rail-2mm",
+        "F-2pct_f+2pct_rail-2mm",
+        main_focal_rel=-0.02,
+        mla_focal_rel=0.02,
+        rail_zero_mm=-2.0,
+    ),
+)
+ALL_OFF = OFF[-1]
+PRIOR_OFFSETS = {p.name: p for p in (EXACT, *OFF)}
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """One rendered sweep: renderer, its command-line options (without OUT and seed), seed."""
+
+    renderer: str
+    name: str
+    args: tuple[str, ...]
+    seed: int
+    about: str
+    priors: tuple[PriorOffset, ...] = (EXACT, *OFF)
+    standard_only: bool = False
+    coverage: bool = False
+
+
+def _args(text: str) -> tuple[str, ...]:
+    return tuple(text.split())
+
+
+# cameras -------------------------------------------------------------------------------
+
+INDSIM_SMALL = (
+    "--width 2160 --height 480 --pp 1897.5,266.5 --F 25 --f 1.5 --D 0.125 --b 1.95 --u0 220.3 "
+    "--theta-deg 0.35 --mla-offset=1.3,2.2 --board-offset=-0.25,0.15 --u-rail0 170 --direction 1"
+)
+"""The mcsim ``small`` camera drawn by indsim: 50 px lenses, focus at rail 50.3 mm."""
+
+INDSIM_BETWEEN = (
+    "--width 2400 --height 800 --pp 2040,439.5 --F 50 --f 2.0 --D 0.2 --b 2.4 --u0 400 "
+    "--theta-deg=-0.35 --mla-offset=-0.9,0.6 --u-rail0 352.4 --direction 1"
+)
+"""bench_crosscheck's ``between`` camera: 80 px lenses, focus at rail 47.6 mm."""
+
+INDSIM_PAPER_1024 = (
+    "--width 1024 --height 1024 --pp 511.5,511.5 --F 35 --f 2.5 --D 0.25 --b 3.0 --u0 300 "
+    "--theta-deg 0.2 --mla-offset=0.4,-1.1 --u-rail0 250 --direction 1"
+)
+"""The paper's camera through a 1024×1024 window: the standard corner only."""
+
+ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
+    "sim": (
+        SweepConfig(
+            "sim",
+            "rotated-end8",
+            _args(
+                "--preset rotated --width 2112 --height 640 --start-mm 0 --step-mm 1 --frames 61"
+            ),
+            1,
+            "80 px lenses, focus at rail 52.37 mm (between steps), sweep ends 7.63 mm past it",
+        ),
+        SweepConfig(
+            "sim",
+            "noisy-2mm",
+            _args("--preset noisy --width 2944 --height 1152 --start-mm 0 --step-mm 2 --frames 50"),
+            2,
+            "120 px lenses, low light and 12 e- read noise, 2 mm steps, focus at rail 49.55 mm",
+        ),
+        SweepConfig(
+            "sim",
+            "paper-standard",
+            _args("--preset paper --width 1024 --height 1024 --frames 100"),
+            3,
+            "the paper's camera through a 1024x1024 window: standard corner only",
+            priors=(EXACT, ALL_OFF),
+            standard_only=True,
+        ),
+    ),
+    "indsim": (
+        SweepConfig(
+            "indsim",
+            "small-start8",
+            _args(INDSIM_SMALL + " --start-mm 42 --step-mm 1 --frames 58"),
+            11,
+            "50 px lenses, focus at rail 50.3 mm (between steps), sweep starts 8.3 mm before it",
+        ),
+        SweepConfig(
+            "indsim",
+            "between-2mm-noisy",
+            _args(
+                INDSIM_BETWEEN + " --bit-depth 16 --photons 800 --read-noise 8"
+                " --start-mm 0 --step-mm 2 --frames 50"
+            ),
+            12,
+            "80 px lenses, 800 e- full light and 8 e- read noise, 2 mm steps, focus at rail 47.6 mm",
+        ),
+        SweepConfig(
+            "indsim",
+            "paper-standard",
+            _args(INDSIM_PAPER_1024 + " --start-mm 20 --step-mm 1 --frames 61"),
+            13,
+            "the paper's camera through a 1024x1024 window: standard corner only",
+            priors=(EXACT, ALL_OFF),
+            standard_only=True,
+        ),
+    ),
+    "mcsim": (
+        SweepConfig(
+            "mcsim",
+            "between-end8",
+            _args("--preset between --frames 59"),
+            21,
+            "80 px lenses, rail towards the camera, focus at rail 49.5 mm (between steps), "
+            "sweep ends 8.5 mm past it",
+        ),
+        SweepConfig(
+            "mcsim",
+            "small-2mm-noisy",
+            _args("--preset small --step-mm 2 --frames 50 --photons 1500 --read-noise 12"),
+            22,
+            "50 px lenses, 1500 e- full light and 12 e- read noise, 2 mm steps, focus at rail 50.3 mm",
+        ),
+        SweepConfig(
+            "mcsim",
+            "paper-standard",
+            _args("--preset paper --corners standard --fit-frame"),
+            23,
+            "the paper's camera, only the standard corner rendered, frame fitted to it",
+            priors=(EXACT, ALL_OFF),
+            standard_only=True,
+        ),
+    ),
+}
+
+COVERAGE_CAMERA = {
+    "sim": "--preset paper --width 2640 --height 960",
+    "indsim": INDSIM_SMALL + " --nap 3",
+    "mcsim": "--preset small",
+}
+"""The cheap two-corner cameras of the coverage sweeps (focus near rail 50 mm)."""
+
+COVERAGE_FRAMES, COVERAGE_STEP_MM, COVERAGE_START_MM = 31, 2.0, 20.0
+COVERAGE_SEED_BASE = 100
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def coverage_config(renderer: str, k: int) -> SweepConfig:
+    """The ``k``-th coverage sweep of a renderer: its own seed and phase of the rail steps."""
+    start = COVERAGE_START_MM + round((k * GOLDEN) % 1.0 * COVERAGE_STEP_MM, 3)
+    sweep = f" --start-mm {start:g} --step-mm {COVERAGE_STEP_MM:g} --frames {COVERAGE_FRAMES}"
+    return SweepConfig(
+        renderer,
+        f"coverage-s{k:02d}",
+        _args(COVERAGE_CAMERA[renderer] + sweep),
+        COVERAGE_SEED_BASE + k,
+        f"coverage sweep {k}: {COVERAGE_FRAMES} frames {COVERAGE_STEP_MM:g} mm apart from rail "
+        f"{start:g} mm",
+        priors=(EXACT, OFF[k % len(OFF)]),
+        coverage=True,
+    )
+
+
+def quick_config(renderer: str) -> SweepConfig:
+    """The quick run's accuracy sweep: the first coverage sweep with every data sheet."""
+    base = coverage_config(renderer, 0)
+    return SweepConfig(
+        renderer, base.name, base.args, base.seed, base.about, priors=(EXACT, *OFF), coverage=False
+    )

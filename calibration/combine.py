@@ -1,0 +1,530 @@
+"""From the frame summaries of a sweep to the calibration result (``lfcal-result/1``).
+
+1. ``Q0``, the disparity at the focus plane, from the geometric defocus of
+   every edge of every frame (:mod:`calibration.defocus`);
+2. the camera from the whole sweep (:mod:`calibration.camera_model`): ``F``
+   and the rail zero from the magnification between the two board corners,
+   ``L`` and ``b`` from ``1/Q(v)``, then ``a = b/Q0``, ``f = b/(1+Q0)``, the
+   focus plane where ``Q = Q0`` and ``p = Q0·D/δ``; data-sheet values only
+   where the sweep cannot fix a quantity;
+3. beside it, for comparison: the paper's route (``b = f_datasheet·(1+Q0)``)
+   and the paper's ``argmin La`` (Eq. 7–9);
+4. checks: the standard and the reference corner must measure the same ``Q``
+   in a frame; a data-sheet value the sweep contradicts beyond its tolerance
+   is named in a warning.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera_model import (
+    PRIORS,
+    CameraModelFit,
+    ModelError,
+    Priors,
+    SweepMeasurements,
+    fit_camera_model,
+)
+from .defocus import DefocusFit, DefocusNotDetermined, EdgeObservation, fit_defocus
+from .edge_spread import BinnedEsf
+from .focus import corner_size_mm, paper_focus
+from .mla_grid import MlaGrid
+from .parameters import Estimate, paper_estimate
+from .summary import (
+    CalibrationError,
+    CalibrationOptions,
+    CalibrationResult,
+    FocusAtEdgeError,
+    FocusNotDeterminedError,
+    FrameSummary,
+    PriorError,
+    SweepGeometry,
+    _json_clean,
+)
+from .version import DISTRIBUTION, software_version
+
+Q_SYSTEMATIC_RELATIVE = 1e-5
+"""Relative systematic uncertainty of one frame's measured Q, added in quadrature to its fit
+error (``frames[].Q_se``; the fit's own is ``Q_se_fit``): a bias common to the micro-images
+of a frame (lens-lattice and edge-model errors) that their scatter cannot show; measured as
+-1e-5 on the project's simulator, where the fit errors alone were 28 % too small."""
+
+CORNER_AGREEMENT_RELATIVE = 2e-4
+"""The two corners' Q may differ by this fraction before a significant difference is
+reported as a warning (MLA tilt or field curvature)."""
+
+
+def _frame_arrays(frames: list[FrameSummary]) -> dict[str, NDArray[np.float64]]:
+    keys = ("object_distance_mm", "rail_mm", "Q", "Q_se", "Ls_px", "Lr_px", "edge_width_px")
+    return {k: np.array([getattr(f, k) for f in frames], dtype=np.float64) for k in keys}
+
+
+def _corner(fs: FrameSummary, name: str) -> dict[str, Any] | None:
+    """The frame's ``standard`` or ``reference`` corner (None when not measured)."""
+    return fs.standard if name == "standard" else fs.reference
+
+
+def _both_found(fs: FrameSummary) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """The frame's (standard, reference) corners when both were found, else None."""
+    a, b = fs.standard, fs.reference
+    return (a, b) if a and b and a.get("found") and b.get("found") else None
+
+
+def _observations(frames: list[FrameSummary]) -> list[EdgeObservation]:
+    """Every corner's edge-spread function with that corner's own Q."""
+    obs = []
+    for fs in frames:
+        for name, esf in fs.esf.items():
+            corner = _corner(fs, name)
+            q = None if corner is None else corner.get("Q")
+            if q is None or not math.isfinite(q) or not esf:
+                continue
+            obs.append(EdgeObservation(fs.index, name, float(q), BinnedEsf.from_dict(esf)))
+    return obs
+
+
+def _inverse_magnification(
+    frames: list[FrameSummary], g: SweepGeometry
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``1/M = u/v`` per frame from the two corners' main images, ``2s`` apart on the board.
+
+    NaN where either corner is missing. The main image of board point X lies
+    at ``-X·M`` (OPTICS.md §3), so ``|r_ref - r_std|·δ = 2s·M``.
+    """
+    inv = np.full(len(frames), np.nan)
+    se = np.full(len(frames), np.nan)
+    for k, fs in enumerate(frames):
+        pair = _both_found(fs)
+        if pair is None:
+            continue
+        a, b = pair
+        ra, rb = np.array(a["main_image_px"], float), np.array(b["main_image_px"], float)
+        sa = np.array(a.get("main_image_se_px") or [np.nan, np.nan], float)
+        sb = np.array(b.get("main_image_se_px") or [np.nan, np.nan], float)
+        delta = rb - ra
+        dist = float(np.hypot(*delta))
+        if not (np.all(np.isfinite(delta)) and dist > 0 and np.all(np.isfinite(sa + sb))):
+            continue
+        dist_se = float(np.sqrt(np.sum((delta / dist) ** 2 * (sa**2 + sb**2))))
+        inv[k] = 2.0 * g.board.square_mm / (dist * g.pixel_pitch_mm)
+        se[k] = inv[k] * dist_se / dist
+    return inv, se
+
+
+def _corner_agreement(frames: list[FrameSummary]) -> dict[str, Any]:
+    """Standard vs reference corner Q in the same frames: they must agree."""
+    diff, err, u = [], [], []
+    for fs in frames:
+        pair = _both_found(fs)
+        if pair is None:
+            continue
+        a, b = pair
+        if a.get("Q") is None or b.get("Q") is None:
+            continue
+        diff.append(a["Q"] - b["Q"])
+        err.append(math.hypot(a["Q_se"], b["Q_se"]))
+        u.append(fs.object_distance_mm)
+    if len(diff) < 3:
+        return {"frames": len(diff), "consistent": None}
+    d, e = np.array(diff), np.array(err)
+    w = 1.0 / e**2
+    mean = float(np.sum(w * d) / np.sum(w))
+    z = d / e
+    chi = float(np.sqrt(np.mean((d - mean) ** 2 / e**2)))
+    mean_se = float(np.sqrt(1.0 / np.sum(w)) * max(chi, 1.0))
+    slope = float(np.polyfit(np.array(u), d, 1, w=np.sqrt(w))[0]) if len(d) >= 5 else float("nan")
+    q_typ = float(np.median([fs.Q for fs in frames if math.isfinite(fs.Q)]))
+    significant = abs(mean) > 3 * mean_se and abs(mean) > CORNER_AGREEMENT_RELATIVE * q_typ
+    return {
+        "frames": len(d),
+        "mean_difference": mean,
+        "mean_difference_se": mean_se,
+        "relative_difference": mean / q_typ,
+        "slope_per_mm": slope,
+        "rms_z": float(np.sqrt(np.mean(z**2))),
+        "consistent": not significant,
+    }
+
+
+SHADING_MODEL_UNCERTAINTY = 0.3
+"""Relative uncertainty given to the angular-shading correction of the disparity: the
+first-order model of :mod:`calibration.shading` (weights smooth across the aperture,
+one curvature for the sensor) is not exact."""
+
+
+def _shading_bias(
+    defocus: DefocusFit, grid: MlaGrid, g: SweepGeometry
+) -> tuple[float, float, dict[str, Any]]:
+    """``η`` of the disparity's shading bias ``Q·(1 + η(Q - Q0))`` and its uncertainty.
+
+    ``η = Var(p)·c`` (:mod:`calibration.shading`): ``c`` from the white image,
+    the aperture variance from the defocus fit (its RMS width is that of a
+    box ``κ·D/δ`` wide).
+    """
+    shading = grid.shading
+    if shading is None or not np.isfinite(shading.curvature_px2):
+        return 0.0, 0.0, {"applied": False}
+    variance = (defocus.kappa * g.lens_pitch_px) ** 2 / 12.0
+    eta = shading.bias_coefficient(variance)
+    eta_se = float(np.hypot(shading.curvature_se_px2 * variance, SHADING_MODEL_UNCERTAINTY * eta))
+    info = {
+        "applied": True,
+        "eta": eta,
+        "eta_se": eta_se,
+        "aperture_variance_px2": variance,
+        **shading.to_dict(),
+    }
+    return eta, eta_se, info
+
+
+def _corner_systematic(
+    frames: list[FrameSummary],
+    measurements: SweepMeasurements,
+    priors: Priors,
+    cam: CameraModelFit,
+) -> dict[str, float]:
+    """Half the difference between the cameras calibrated from each corner's disparity alone.
+
+    The two corners sit in different parts of the field; a bias of the
+    disparity that grows with defocus (a shading or clipping of the aperture
+    the model does not describe) tilts ``1/Q(v)`` differently for each, and
+    ``b``, ``L`` and ``a`` come from that tilt. Their disagreement is taken as a
+    systematic uncertainty, added in quadrature to every quantity (it is
+    zero when one corner alone was measured).
+    """
+    series = {}
+    for name in ("standard", "reference"):
+        q = np.array([_corner_value(fs, name, "Q") for fs in frames])
+        q_se = np.array([_corner_value(fs, name, "Q_se") for fs in frames])
+        if np.sum(np.isfinite(q)) < max(10, len(frames) // 3):
+            return {}
+        series[name] = (q, q_se)
+    fits = []
+    for q, q_se in series.values():
+        try:
+            fits.append(fit_camera_model(replace(measurements, Q=q, Q_se=q_se), priors))
+        except ModelError:
+            return {}
+    spread = {}
+    for key in cam.values:
+        half = 0.5 * abs(fits[0].values[key] - fits[1].values[key])
+        if math.isfinite(half):
+            spread[key] = half
+            cam.uncertainty[key] = float(math.hypot(cam.uncertainty[key], half))
+    return spread
+
+
+def _corner_value(fs: FrameSummary, name: str, key: str) -> float:
+    corner = _corner(fs, name)
+    value = None if not corner else corner.get(key)
+    return float("nan") if value is None else float(value)
+
+
+def _priors_section(cam: CameraModelFit, priors: Priors) -> tuple[dict[str, Any], list[str]]:
+    """``priors`` of the result: data sheet vs calibrated, and a warning per contradiction.
+
+    ``z = (datasheet - calibrated)/sqrt(σ² + tolerance²)``; a prior is
+    contradicted when it is off by more than its tolerance plus three sigma of
+    the calibration.
+    """
+    section: dict[str, Any] = {}
+    warnings = []
+    for name in PRIORS:
+        sheet, tol = priors.value(name), priors.tolerance(name)
+        cal, se = cam.values[name], cam.uncertainty[name]
+        diff = sheet - cal
+        z = diff / math.hypot(se, tol)
+        by = cam.determined_by[name]
+        contradicted = by == "sweep" and abs(diff) > tol + 3 * se
+        section[name] = {
+            "datasheet": sheet,
+            "calibrated": cal,
+            "uncertainty": se,
+            "tolerance": tol,
+            "z": z,
+            "determined_by": by,
+            "sweep_only_uncertainty": cam.sweep_only_uncertainty[name],
+            "contradicted": contradicted,
+        }
+        if contradicted:
+            warnings.append(
+                f"the data sheet's {name} = {sheet:g} mm is contradicted by the sweep: "
+                f"calibrated {cal:.4f} ± {se:.4f} mm, off by {diff:+.4f} mm against a tolerance "
+                f"of {tol:g} mm (z = {z:+.1f})"
+            )
+    section["L_mm"] = {"calibrated": cam.values["L_mm"], "uncertainty": cam.uncertainty["L_mm"]}
+    fell_back = [n for n in PRIORS if cam.determined_by[n] == "prior"]
+    if fell_back:
+        warnings.append(
+            "the sweep could not fix "
+            + ", ".join(fell_back)
+            + ": the data-sheet value"
+            + ("s were" if len(fell_back) > 1 else " was")
+            + " used with "
+            + ("their tolerances, which are" if len(fell_back) > 1 else "its tolerance, which is")
+            + " carried in the uncertainties"
+        )
+    check = cam.image_scale
+    if check.get("measured") is not None and not check["used"]:
+        warnings.append(
+            f"the white image's micro-image pitch gives (L+b)/L = {check['measured']:.6f} ± "
+            f"{check['measured_se']:.6f}, the sweep {check['sweep']:.6f} ± {check['sweep_se']:.6f} "
+            f"(z = {check['z']:+.1f}): the micro-images are not centred on the projections of "
+            "the main lens's principal point (a thick lens whose exit pupil lies far from it, "
+            "or a microlens pitch other than the data sheet's); b and L come from the sweep alone"
+        )
+    return section, warnings
+
+
+def _sweep_estimate(cam: CameraModelFit, g: SweepGeometry) -> Estimate:
+    v, se = cam.values, cam.uncertainty
+    scale = g.mla_pitch_mm / g.pixel_pitch_mm
+    return Estimate(
+        a_mm=v["a_mm"],
+        b_mm=v["b_mm"],
+        Q=v["Q0"],
+        patch_size_px=v["Q0"] * scale,
+        focus_object_distance_mm=v["focus_object_distance_mm"],
+        a_se_mm=se["a_mm"],
+        b_se_mm=se["b_mm"],
+        Q_se=se["Q0"],
+        patch_size_se_px=se["Q0"] * scale,
+        focus_se_mm=se["focus_object_distance_mm"],
+        L_mm=v["L_mm"],
+        L_se_mm=se["L_mm"],
+    )
+
+
+def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
+    return {
+        "Q0": d.Q0,
+        "Q0_se": d.Q0_se,
+        "Q0_se_curvature": d.Q0_se_curvature,
+        "Q0_se_cluster": d.Q0_se_cluster,
+        "Q0_se_systematic": d.Q0_se_systematic,
+        "aperture_scale": d.kappa,
+        "aperture_shape_box": d.shape_box,
+        "chi2_reduced": d.chi2_reduced,
+        "static_blur_rms_px": d.static_rms_px,
+        "max_defocus_px": d.max_blur_px,
+        "frames": d.frames,
+    }
+
+
+def combine(
+    frames: Iterable[FrameSummary],
+    geometry: SweepGeometry,
+    grid: MlaGrid,
+    *,
+    options: CalibrationOptions | None = None,
+) -> CalibrationResult:
+    """Focus plane, camera parameters and uncertainties from the frame summaries.
+
+    Raises :class:`CalibrationError` (with the per-frame results in
+    ``partial``) when too few frames have corners, :class:`FocusNotDeterminedError`
+    when the blur does not locate the focus plane, :class:`FocusAtEdgeError`
+    when the focus plane is outside the sweep and :class:`PriorError` when the
+    data-sheet values admit no thin-lens camera.
+    """
+    opts = options or CalibrationOptions()
+    g = geometry
+    frames = sorted(frames, key=lambda fs: fs.object_distance_mm)
+    arr = _frame_arrays(frames)
+    u = arr["object_distance_mm"]
+    Lp, La = corner_size_mm(arr["Ls_px"], arr["Lr_px"], g.board.reference_gap_mm)
+    D, delta = g.mla_pitch_mm, g.pixel_pitch_mm
+    frames_out = []
+    for k, fs in enumerate(frames):
+        d = fs.to_dict(with_corners=True, with_esf=False)
+        d["patch_size_px"] = fs.Q * D / delta
+        d["Lp_mm_per_px"] = float(Lp[k])
+        d["La_mm"] = float(La[k])
+        frames_out.append(d)
+    n_ref = sum(1 for fs in frames if fs.reference and fs.reference.get("found"))
+    n_std = sum(1 for fs in frames if fs.standard and fs.standard.get("found"))
+    warnings: list[str] = []
+    partial: dict[str, Any] = {
+        "format": "lfcal-result/1",
+        "software": {"name": DISTRIBUTION, "version": software_version()},
+        "inputs": g.to_dict(),
+        "mla": grid.to_dict(),
+        "frames": frames_out,
+        "corners_found": {
+            "standard_frames": n_std,
+            "reference_frames": n_ref,
+            "frames": len(frames),
+        },
+        "warnings": warnings,
+    }
+    good = np.isfinite(arr["Q"])
+    if good.sum() < opts.min_frames:
+        raise CalibrationError(
+            f"a board corner was found in only {int(good.sum())} of {len(frames)} frames "
+            f"(need {opts.min_frames}): is the board aligned with the lens axis and in view?",
+            _json_clean(partial),
+        )
+    if n_ref == 0:
+        warnings.append(
+            "the reference corner (2s, 0) was not found in any frame (outside the ROI?): "
+            "no magnification, so the main-lens focal length and the rail zero come from "
+            "their data-sheet values and tolerances; Lr, Lp and La are not available"
+        )
+    try:
+        defocus = fit_defocus(_observations(frames), lens_pitch_px=g.lens_pitch_px)
+    except DefocusNotDetermined as exc:
+        partial["error"] = f"focus plane not determined: {exc}"
+        raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
+    partial["focus"] = {"defocus_model": _defocus_dict(defocus)}
+    inv_m, inv_m_se = _inverse_magnification(frames, g)
+    priors = g.priors()
+    eta, eta_se, shading = _shading_bias(defocus, grid, g)
+    measurements = SweepMeasurements(
+        rail_mm=arr["rail_mm"],
+        Q=arr["Q"],
+        Q_se=arr["Q_se"],
+        inv_magnification=inv_m,
+        inv_magnification_se=inv_m_se,
+        Q0=defocus.Q0,
+        Q0_se=defocus.Q0_se,
+        eta=eta,
+        eta_se=eta_se,
+        # the pitch's rim-shading correction needs the white image's shading
+        image_scale=grid.scale if shading["applied"] else float("nan"),
+        image_scale_se=grid.scale_se,
+    )
+    try:
+        cam = fit_camera_model(measurements, priors)
+    except ModelError as exc:
+        partial["error"] = str(exc)
+        raise PriorError(str(exc), _json_clean(partial)) from exc
+    corner_spread = _corner_systematic(frames, measurements, priors, cam)
+    values, se = cam.values, cam.uncertainty
+    rail = arr["rail_mm"]
+    focus_rail = values["focus_rail_mm"]
+    step = float(np.median(np.diff(np.sort(rail)))) if rail.size > 1 else 1.0
+    if not (rail.min() + 0.5 * step <= focus_rail <= rail.max() - 0.5 * step):
+        msg = (
+            f"focus plane at the sweep edge or beyond it (Q = Q0 at rail {focus_rail:.1f} mm, "
+            f"u = {values['focus_object_distance_mm']:.1f} mm; the sweep covers rail "
+            f"{rail.min():.1f}..{rail.max():.1f} mm): extend the range"
+        )
+        partial["error"] = msg
+        raise FocusAtEdgeError(msg, _json_clean(partial))
+    # per frame, the calibrated camera's patch size at that distance beside the measured one;
+    # the measured Q's standard error at the disparity's scatter about the camera, with a floor
+    q_model, q_model_se = cam.q_at_rail(rail)
+    scale = cam.chi2_reduced.get("disparity_scale", 1.0)
+    for k, d in enumerate(frames_out):
+        if d.get("Q") is not None and d.get("Q_se") is not None:
+            d["Q_se_fit"] = d["Q_se"]
+            d["Q_se"] = float(math.hypot(d["Q_se"] * scale, Q_SYSTEMATIC_RELATIVE * d["Q"]))
+        d["patch_size_measured_px"] = d["patch_size_px"]
+        d["patch_size_px"] = float(q_model[k]) * D / delta
+        d["patch_size_se_px"] = float(q_model_se[k]) * D / delta
+    sweep = _sweep_estimate(cam, g)
+    paper_route = paper_estimate(
+        values["Q0"],
+        se["Q0"],
+        f=g.mla_focal_mm,
+        D=D,
+        delta=delta,
+        focus_object_distance_mm=values["focus_object_distance_mm"],
+        focus_se_mm=se["focus_object_distance_mm"],
+    )
+    paper = paper_focus(rail * g.direction, La)
+    paper_est: Estimate | None = None
+    paper_focus_dict: dict[str, Any] | None = None
+    if paper is not None:
+        paper_rail = paper.object_distance_mm * g.direction
+        q_p = float(cam.q_at_rail(np.array([paper_rail]))[0][0])
+        u_p = values["rail_zero_object_distance_mm"] + g.direction * paper_rail
+        paper_est = paper_estimate(
+            q_p, se["Q0"], f=g.mla_focal_mm, D=D, delta=delta, focus_object_distance_mm=u_p
+        )
+        paper_focus_dict = {
+            "object_distance_mm": u_p,
+            "rail_mm": paper_rail,
+            "best_frame_index": frames[paper.best_index].index,
+        }
+    agreement = _corner_agreement(frames)
+    if agreement.get("consistent") is False:
+        warnings.append(
+            "the standard and the reference corner measure different Q in the same frames "
+            f"(mean difference {agreement['mean_difference']:+.2e}, "
+            f"{100 * agreement['relative_difference']:+.3f} %): the MLA is tilted or the "
+            "field is curved; Q is averaged over both corners"
+        )
+    priors_section, prior_warnings = _priors_section(cam, priors)
+    warnings.extend(prior_warnings)
+    if abs(defocus.kappa - 1.0) > 0.25:
+        warnings.append(
+            f"the defocus blur is {defocus.kappa:.2f} times the full microlens aperture: the "
+            "microlens fill factor or aperture is smaller than its pitch (focus plane unaffected)"
+        )
+    frame_index = [fs.index for fs in frames]
+    result = dict(partial)
+    result.update(
+        {
+            "a_mm": sweep.a_mm,
+            "b_mm": sweep.b_mm,
+            "Q": sweep.Q,
+            "patch_size_px": sweep.patch_size_px,
+            "L_mm": values["L_mm"],
+            "mla_focal_mm": values["mla_focal_mm"],
+            "main_focal_mm": values["main_focal_mm"],
+            "uncertainty": {
+                "a_mm": sweep.a_se_mm,
+                "b_mm": sweep.b_se_mm,
+                "Q": sweep.Q_se,
+                "patch_size_px": sweep.patch_size_se_px,
+                "focus_object_distance_mm": se["focus_object_distance_mm"],
+                "focus_rail_mm": se["focus_rail_mm"],
+                "L_mm": se["L_mm"],
+                "mla_focal_mm": se["mla_focal_mm"],
+                "main_focal_mm": se["main_focal_mm"],
+            },
+            "focus": {
+                "object_distance_mm": values["focus_object_distance_mm"],
+                "rail_mm": focus_rail,
+                "uncertainty_mm": se["focus_object_distance_mm"],
+                "rail_uncertainty_mm": se["focus_rail_mm"],
+                "Q0": values["Q0"],
+                "Q0_se": se["Q0"],
+                "method": (
+                    "where Q(u) = Q0, Q0 from the geometric defocus (D/δ)|Q - Q0| fitted to the "
+                    "edge-spread functions of every frame"
+                ),
+                "defocus_model": _defocus_dict(defocus),
+                "paper_argmin_La": paper_focus_dict,
+            },
+            "priors": priors_section,
+            "camera_model": {**cam.to_dict(), "corner_systematic": corner_spread},
+            "estimates": {
+                "sweep": sweep.to_dict(),
+                "paper_route": paper_route.to_dict(),
+                "paper_argmin_La": None if paper_est is None else paper_est.to_dict(),
+            },
+            "corner_agreement": agreement,
+            "shading_correction": shading,
+            "curves": {
+                "object_distance_mm": u.tolist(),
+                "rail_mm": rail.tolist(),
+                "inv_Q_model": cam.inv_q_model.tolist(),
+                "inv_magnification_model": cam.inv_magnification_model.tolist(),
+                "inv_magnification": inv_m.tolist(),
+                "blur_diameter_px": [defocus.blur_px.get(i, float("nan")) for i in frame_index],
+                "edge_spread_px": [defocus.spread_px.get(i, float("nan")) for i in frame_index],
+                "edge_spread_model_px": [
+                    defocus.model_spread_px.get(i, float("nan")) for i in frame_index
+                ],
+            },
+        }
+    )
+    return CalibrationResult(_json_clean(result))

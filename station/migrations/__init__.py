@@ -1,0 +1,1 @@
+"""Versioned schema migrations of the job database (alembic; see :mod:`station.schema`)."""

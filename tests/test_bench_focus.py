@@ -1,0 +1,262 @@
+"""The plumbing of the focus benchmark (``bench/bench_focus.py``), fast.
+
+* the truth of each renderer's own ``truth.json`` format (built by the
+  renderers' own truth writers, no rendering) is read right: errors, sigmas
+  and z of a result that is off by known amounts, and mcsim's record of the
+  manifest's (wrong) data sheet is not taken for the truth;
+* a wrong-data-sheet variant differs from its render only in the manifest, by
+  exactly the offsets;
+* end to end on a tiny simulator sweep (8 frames, standard corner only): the
+  rows are produced, the core says that F and the rail zero came from the
+  data sheet, a calibration the core refuses is a failed row with its message;
+* the coverage rows count seeds within 1 and 3 sigma, leaving out quantities
+  taken from the data sheet.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bench.bench_focus import Run
+from bench.crosscheck import indsim
+from bench.focus import cache
+from bench.focus.configs import ALL_OFF, EXACT, PriorOffset, SweepConfig
+from bench.focus.evaluate import Comparison, compare, coverage_bounds, coverage_rows
+from bench.focus.summary import accuracy_lines
+from bench.mcsim.archive import truth as mcsim_truth
+from bench.mcsim.spec import build_spec
+from calibration.archive import SweepArchive
+from calibration.presets import get_preset, with_sweep
+from calibration.sim_sweep import truth as sim_truth
+
+TRUTH_KEYS: dict[str, tuple[str | tuple[str, ...], ...]] = {
+    # what each format calls a, b, u0, F, f, rail zero
+    "sim": (
+        "a_mm",
+        "b_mm",
+        ("focus", "object_distance_mm"),
+        ("optics", "F_mm"),
+        ("optics", "f_mm"),
+        ("rail", "zero_object_distance_mm"),
+    ),
+    "indsim": ("a_f_mm", "b_mm", "u0_mm", "F_mm", "f_mm", "u_rail0_mm"),
+    "mcsim": ("a_f_mm", "b_mm", "u0_mm", "F_mm", "f_mm", "u_rail0_mm"),
+}
+
+
+def _get(data: dict[str, Any], key: str | tuple[str, ...]) -> float:
+    for part in (key,) if isinstance(key, str) else key:
+        data = data[part]
+    return float(data)  # type: ignore[arg-type]
+
+
+def _truths() -> dict[str, dict[str, Any]]:
+    sim = sim_truth(with_sweep(get_preset("rotated"), frames=3, start_mm=40.0, step_mm=10.0))
+    cam = indsim.Camera(F=50.0, f=2.0, D=0.2, b=2.4, u0=400.0, W=800, H=600)
+    frames = [{"index": k, "rail_mm": 10.0 * k, "u_mm": 380.0 + 10.0 * k} for k in range(3)]
+    ind = indsim.truth_dict(cam, frames, 380.0, 1)
+    spec = build_spec(
+        preset="small",
+        frames=3,
+        manifest_main_focal_mm=30.0,
+        manifest_mla_focal_mm=1.2,
+        manifest_rail_zero_mm=160.0,
+    )
+    return {"sim": sim, "indsim": ind, "mcsim": mcsim_truth(spec)}
+
+
+@pytest.mark.parametrize("renderer", ["sim", "indsim", "mcsim"])
+def test_truth_of_each_renderer_is_read(renderer: str) -> None:
+    truth = _truths()[renderer]
+    a, b, u0, F, f, rail0 = (_get(truth, k) for k in TRUTH_KEYS[renderer])
+    p_key = "patch_size_px" if renderer == "sim" else "p_px"
+    frames = [
+        {
+            "index": fr["index"],
+            "patch_size_px": fr[p_key] + (0.004 if fr["index"] == 1 else -0.001),
+            "patch_size_measured_px": fr[p_key] - (0.03 if fr["index"] == 2 else 0.0),
+        }
+        for fr in truth["frames"]
+    ]
+    result = {
+        "a_mm": a * (1 + 2e-4),
+        "b_mm": b * (1 - 1e-4),
+        "main_focal_mm": F * (1 + 5e-4),
+        "mla_focal_mm": f * (1 - 3e-4),
+        "uncertainty": {
+            "a_mm": a * 1e-4,
+            "b_mm": b * 2e-4,
+            "main_focal_mm": F * 1e-3,
+            "mla_focal_mm": f * 1e-4,
+        },
+        "focus": {"object_distance_mm": u0 - 0.12, "uncertainty_mm": 0.06},
+        "priors": {
+            "main_focal_mm": {"determined_by": "sweep"},
+            "mla_focal_mm": {"determined_by": "sweep"},
+            "rail_zero_object_distance_mm": {
+                "calibrated": rail0 + 0.05,
+                "uncertainty": 0.1,
+                "determined_by": "prior",
+            },
+        },
+        "estimates": {"paper_route": {"a_mm": a * (1 - 3e-4), "a_se_mm": a * 3e-4}},
+        "frames": frames,
+        "corners_found": {"reference_frames": 3},
+    }
+    cmp = compare(result, truth)
+    expected = {
+        "focus": (-0.12, 0.06),
+        "a": (0.02, 0.01),
+        "b": (-0.01, 0.02),
+        "F": (0.05, 0.1),
+        "f": (-0.03, 0.01),
+        "rail0": (0.05, 0.1),
+        "a_route": (-0.03, 0.03),
+    }
+    for key, (error, sigma) in expected.items():
+        entry = cmp.values[key]
+        assert entry["error"] == pytest.approx(error, rel=1e-6, abs=1e-9), key
+        assert entry["sigma"] == pytest.approx(sigma, rel=1e-6), key
+        assert entry["z"] == pytest.approx(error / sigma, rel=1e-6), key
+    assert cmp.values["rail0"]["determined_by"] == "prior"
+    assert cmp.fell_back == ["rail_zero_object_distance_mm"]
+    assert cmp.p_frames == 3
+    assert cmp.worst_p_px == pytest.approx(0.004, abs=1e-9)
+    assert cmp.worst_measured_p_px == pytest.approx(0.03, abs=1e-9)
+
+
+def test_mcsim_manifest_priors_are_not_the_truth() -> None:
+    truth = _truths()["mcsim"]
+    assert truth["manifest_priors"]["main_focal_mm"] == 30.0
+    result = {"main_focal_mm": truth["F_mm"], "uncertainty": {"main_focal_mm": 0.01}}
+    assert compare(result, truth).values["F"]["error"] == pytest.approx(0.0, abs=1e-12)
+
+
+TINY = SweepConfig(
+    "sim",
+    "tiny-standard",
+    ("--preset", "paper", "--width", "1024", "--height", "1024", "--frames", "8")
+    + ("--start-mm", "22", "--step-mm", "8"),
+    5,
+    "8 frames of a 1024x1024 window: the standard corner only",
+    priors=(EXACT, ALL_OFF),
+    standard_only=True,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, cache.Render]:
+    root = tmp_path_factory.mktemp("focus")
+    render = cache.render(TINY, root)
+    assert render.error is None, render.error
+    return root, render
+
+
+def test_render_is_cached_by_its_command(tiny: tuple[Path, cache.Render]) -> None:
+    root, render = tiny
+    assert render.seconds is not None and (render.path / "truth.json").is_file()
+    again = cache.render(TINY, root)
+    assert again.seconds is None and again.path == render.path
+    other_seed = SweepConfig(TINY.renderer, TINY.name, TINY.args, TINY.seed + 1, TINY.about)
+    assert cache.is_cached(root, TINY) and not cache.is_cached(root, other_seed)
+
+
+def test_wrong_datasheet_variant_changes_only_the_manifest(tiny: tuple[Path, cache.Render]) -> None:
+    _, render = tiny
+    base = json.loads((render.path / "sweep.json").read_text())
+    truth = json.loads((render.path / "truth.json").read_text())
+    variant = cache.priors_variant(render.path, ALL_OFF)
+    assert cache.priors_variant(render.path, EXACT) == render.path
+    changed = json.loads((variant / "sweep.json").read_text())
+    expected = copy.deepcopy(base)
+    expected["optics"]["main_focal_mm"] = truth["optics"]["F_mm"] * 0.98
+    expected["optics"]["mla_focal_mm"] = truth["optics"]["f_mm"] * 1.02
+    expected["rail"]["zero_object_distance_mm"] = truth["rail"]["zero_object_distance_mm"] - 2.0
+    assert _close(changed, expected), (changed, expected)
+    archive = SweepArchive.open(variant)
+    assert archive.path_of(base["white"]).resolve() == (render.path / base["white"]).resolve()
+    first = base["frames"][0]["file"]
+    assert archive.path_of(first).resolve() == (render.path / first).resolve()
+    assert json.loads((variant / "truth.json").read_text()) == truth
+
+
+def _close(a: Any, b: Any) -> bool:
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, list):
+        return isinstance(b, list) and len(a) == len(b) and all(map(_close, a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        return math.isclose(a, b, rel_tol=1e-12)
+    return bool(a == b)
+
+
+def test_rows_on_a_tiny_standard_only_sweep(tiny: tuple[Path, cache.Render]) -> None:
+    root, render = tiny
+    run = Run(root, jobs=1)
+    run.accuracy(TINY, render)
+    names = [r["name"] for r in run.rows]
+    head = "sim tiny-standard [exact]: "
+    for label in ("focus-plane error", "a error", "b error", "worst per-frame p error"):
+        assert head + label in names, names
+    exact = {r["name"][len(head) :]: r for r in run.rows if r["name"].startswith(head)}
+    fell = exact["F and rail zero fell back to priors"]
+    assert fell["ok"] is True and fell["value"] == 1.0, fell
+    # F from the data sheet: no target, and its uncertainty carries the tolerance
+    assert exact["F error"]["target"] is None and "data sheet" in exact["F error"]["note"]
+    F = run.details[0]["quantities"]["F"]
+    assert F["determined_by"] == "prior" and abs(F["z"]) < 3.0
+    assert exact["focus-plane error"]["value"] < 1.0  # mm, a sanity bound for 8 frames
+    off = [r for r in run.rows if r["name"].startswith(f"sim tiny-standard [{ALL_OFF.name}]")]
+    assert off and all(r["unit"] in ("sigma", "px", "bool") for r in off), off
+    line = next(x for x in accuracy_lines(run.rows) if x.startswith(head[:-2]))
+    assert line.endswith("yes"), line  # the summary line says F and the rail zero fell back
+    detail = run.details[0]
+    assert detail["exit_code"] == 0 and Path(detail["result"]).is_file()
+    # the calibration's truth comparison used this sweep's truth.json
+    truth = json.loads((render.path / "truth.json").read_text())
+    assert detail["quantities"]["a"]["truth"] == truth["a_mm"]
+
+
+def test_a_refused_calibration_is_a_failed_row(tiny: tuple[Path, cache.Render]) -> None:
+    root, render = tiny
+    absurd = PriorOffset("F x20", "F-x20", main_focal_rel=19.0)
+    config = SweepConfig(
+        TINY.renderer, TINY.name, TINY.args, TINY.seed, TINY.about, priors=(absurd,)
+    )
+    run = Run(root, jobs=1)
+    run.accuracy(config, render)
+    assert len(run.rows) == 1
+    row = run.rows[0]
+    assert row["ok"] is False and row["value"] == 2.0  # PriorError: exit 2
+    assert "FAILED" in row["name"] and "main_focal_mm" in row["note"]
+
+
+def _comparison(z: dict[str, float], by: str = "sweep") -> Comparison:
+    cmp = Comparison()
+    for key, value in z.items():
+        cmp.values[key] = {"error": 0.1 * value, "sigma": 0.1, "z": value, "determined_by": by}
+    return cmp
+
+
+def test_coverage_rows_count_seeds_within_one_and_three_sigma() -> None:
+    zs = [0.5, -0.9, 1.5, 2.5, -4.0]
+    comparisons = [_comparison({"a": z, "F": z}, by="sweep") for z in zs]
+    comparisons[0].values["F"]["determined_by"] = "prior"  # left out
+    rows = {r["name"]: r for r in coverage_rows("sim", "exact", comparisons, attempted=6)}
+    seeds = rows["sim coverage [exact]: seeds calibrated"]
+    assert seeds["value"] == 5 and seeds["ok"] is False
+    one = rows["sim coverage [exact]: a error within 1 sigma (5 seeds)"]
+    three = rows["sim coverage [exact]: a error within 3 sigma (5 seeds)"]
+    assert one["value"] == pytest.approx(2 / 5) and three["value"] == pytest.approx(4 / 5)
+    assert three["ok"] is False  # one of five beyond 3 sigma is far too many
+    assert "sim coverage [exact]: F error within 1 sigma (4 seeds)" in rows
+    rms = rows["sim coverage [exact]: a error RMS error/sigma"]["value"]
+    assert rms == pytest.approx(math.sqrt(sum(z * z for z in zs) / 5))
+    lo, hi, least3 = coverage_bounds(20)
+    assert (lo, hi, least3) == (9, 17, 19)

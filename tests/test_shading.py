@@ -1,0 +1,63 @@
+"""The angular shading of micro-images, measured on a constructed white image.
+
+Micro-images are discs on a lattice; inside each, the intensity falls off as
+``exp(-(c/2)·|s - m|²)`` about the lens-centre projection ``m``, which for
+off-axis micro-images is not the micro-image centre (so each disc also has a
+tilt). The measured curvature must be ``c`` whatever the tilt, and the
+disparity bias it implies, ``η = Var(aperture)·c``, follows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.lens_grid import LensGrid
+from calibration.shading import measure_shading
+
+PITCH_PX = 60.0
+SCALE = 1.05  # micro-image centres lie (L+b)/L farther from the principal point
+
+
+def _white(curvature: float, seed: int = 0, noise: float = 0.005) -> tuple[np.ndarray, LensGrid]:
+    h, w = 600, 900
+    pp = ((w - 1) / 2, (h - 1) / 2)
+    lens = LensGrid((pp[0] + 3.2, pp[1] - 1.7), PITCH_PX, np.radians(0.3))
+    image = lens.scaled_about(pp, SCALE)
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    i, j = image.nearest(xs, ys)
+    cx, cy = image.centre(i, j)
+    mx, my = lens.centre(i, j)
+    r = np.hypot(xs - cx, ys - cy)
+    disc = np.clip((0.5 * image.pitch_px - r) / 2.0, 0.0, 1.0)  # soft rim
+    shade = np.exp(-0.5 * curvature * ((xs - mx) ** 2 + (ys - my) ** 2))
+    rng = np.random.default_rng(seed)
+    white = 3000.0 * disc * shade * (1 + rng.normal(0, noise, disc.shape)) + 40.0
+    return white, image
+
+
+@pytest.mark.parametrize("curvature", [0.0, 3e-6, 2e-5])
+def test_the_curvature_of_the_shading_is_measured(curvature: float) -> None:
+    white, image = _white(curvature)
+    found = measure_shading(white, image, background=40.0)
+    assert found.micro_images > 50
+    assert found.curvature_px2 == pytest.approx(
+        curvature, abs=max(3 * found.curvature_se_px2, 2e-7)
+    )
+    assert found.curvature_se_px2 < 5e-7
+
+
+def test_the_bias_coefficient_is_the_aperture_variance_times_the_curvature() -> None:
+    white, image = _white(3e-6, seed=1)
+    found = measure_shading(white, image, background=40.0)
+    variance = PITCH_PX**2 / 12.0
+    assert found.bias_coefficient(variance) == pytest.approx(
+        variance * 3e-6, abs=3 * variance * found.curvature_se_px2
+    )
+    assert found.to_dict()["micro_images"] == found.micro_images
+
+
+def test_a_dark_frame_gives_no_measurement() -> None:
+    _, image = _white(0.0)
+    found = measure_shading(np.zeros((600, 900)), image)
+    assert found.micro_images == 0 or not np.isfinite(found.curvature_px2)
