@@ -414,6 +414,7 @@ class AravisCamera(CameraContext):
                 frame_retention_ms if frame_retention_ms is not None else base.frame_retention_ms
             ),
             packet_resend=packet_resend if packet_resend is not None else base.packet_resend,
+            packet_socket=base.packet_socket,
         )
         if self.transport.buffer_count < 1 or self.transport.frame_retention_ms <= 0:
             raise ValueError("n_buffers >= 1 and frame_retention_ms > 0")
@@ -805,6 +806,12 @@ class AravisCamera(CameraContext):
         if self._stream is None or payload != self._payload:
             self._stream = None
             with self._gerrors("stream"):
+                if isinstance(self._device, ar.GvDevice):
+                    self._device.set_stream_options(
+                        ar.GvStreamOption.NONE
+                        if self.transport.packet_socket
+                        else ar.GvStreamOption.PACKET_SOCKET_DISABLED
+                    )
                 self._stream = self._camera.create_stream(None, None)
                 if isinstance(self._stream, ar.GvStream):
                     self._stream.set_property(

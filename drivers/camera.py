@@ -117,6 +117,12 @@ class TransportSettings:
             None: sized to one frame.  The kernel caps it at ``net.core.rmem_max``.
         frame_retention_ms: how long missing packets are waited for (Aravis).
         packet_resend: ask the camera to resend lost packets.
+        packet_socket: Aravis GigE Vision: receive through a memory-mapped ``AF_PACKET``
+            ring (needs ``CAP_NET_RAW``) instead of the UDP socket.  Off by default: while
+            Aravis 0.8 sets the ring up, every packet on the interface is read as stream
+            data for a moment, and a stray packet can hold a buffer for
+            ``frame_retention_ms`` and cost the next frame (seen on a busy loopback).
+            Turn it on only on a network card that carries nothing but the camera.
     """
 
     packet_size: int | None = None
@@ -126,6 +132,7 @@ class TransportSettings:
     socket_buffer_bytes: int | None = None
     frame_retention_ms: float = 2000.0
     packet_resend: bool = True
+    packet_socket: bool = False
 
 
 @dataclass(frozen=True)

@@ -327,6 +327,7 @@ def transport_settings(config: StationConfig) -> TransportSettings:
         socket_buffer_bytes=t.socket_buffer_bytes,
         frame_retention_ms=t.frame_retention_ms,
         packet_resend=t.packet_resend,
+        packet_socket=t.packet_socket,
     )
 
 

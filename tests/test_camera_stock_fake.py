@@ -11,6 +11,7 @@ so the fixture takes the same inter-process lock as :mod:`drivers.sim.fake_gige`
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import time
@@ -137,3 +138,33 @@ def test_transport_settings_and_the_rmem_max_warning(stock_fake: subprocess.Pope
     assert socket_buffer_warning(1000, 2000) is None
     text = socket_buffer_warning(8_000_000, 212_992)
     assert text is not None and "net.core.rmem_max = 212992" in text and "8000000" in text
+
+
+def _packet_socket_inodes_of_this_process() -> set[str]:
+    """Inodes of this process's sockets that the kernel lists as AF_PACKET sockets."""
+    ours = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            ours.add(target[len("socket:[") : -1])
+    with open("/proc/net/packet") as table:
+        packet = {line.split()[-1] for line in table.readlines()[1:] if line.split()}
+    return ours & packet
+
+
+@pytest.mark.parametrize("packet_socket", [False, True])
+def test_the_stream_receiver_is_the_udp_socket_unless_the_packet_ring_is_asked_for(
+    stock_fake: subprocess.Popen[bytes], packet_socket: bool
+) -> None:
+    """Aravis reads every packet on the interface as GVSP while it sets its AF_PACKET
+    ring up; a stray one can hold a buffer and cost a frame, so the ring is opt-in."""
+    if packet_socket and os.geteuid() != 0:
+        pytest.skip("the AF_PACKET ring needs CAP_NET_RAW")
+    with AravisCamera(ADDRESS, transport=TransportSettings(packet_socket=packet_socket)) as cam:
+        cam.configure(CameraSettings("Mono8", roi=Roi(64, 64)))
+        assert cam.grab(timeout_s=5.0).pixels.shape == (64, 64)
+        rings = _packet_socket_inodes_of_this_process()
+        assert bool(rings) == packet_socket, rings

@@ -17,6 +17,7 @@ from station.config import (
     config_check_main,
     load_config,
 )
+from station.devices import transport_settings
 
 REPO = Path(__file__).resolve().parents[1]
 SIMULATED = REPO / "config" / "simulated.toml"
@@ -60,7 +61,7 @@ def test_simulated_config_loads() -> None:
     assert cfg.server.host == "127.0.0.1" and cfg.server.port == 8000
 
 
-def test_lab_example_config_loads() -> None:
+def test_lab_example_config_loads(tmp_path: Path) -> None:
     cfg = load_config(LAB, env={})
     assert cfg.camera.backend == "aravis" and cfg.camera.address == "192.168.10.20"
     assert cfg.camera.sensor_size_px == (5120, 5120)
@@ -69,6 +70,14 @@ def test_lab_example_config_loads() -> None:
     assert (cfg.xy_stage.x.device, cfg.xy_stage.x.axis) == (2, 1)
     assert (cfg.xy_stage.y.device, cfg.xy_stage.y.axis) == (2, 2)
     assert cfg.storage.data_dir == Path("/var/lib/lfcal/data")
+    transport = transport_settings(cfg)
+    assert (transport.packet_size, transport.buffer_count) == (8192, 4)
+    assert transport.packet_resend and not transport.packet_socket
+    ring = load_config(
+        write(tmp_path, LAB.read_text().replace("packet_socket = false", "packet_socket = true")),
+        env={},
+    )
+    assert transport_settings(ring).packet_socket
 
 
 def test_config_check_main(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
