@@ -205,6 +205,9 @@ def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
     return gvcp_read_register(ip, 0x0000, timeout_s, tries) is not None
 
 
+SOCKET_BUFFER_FRAMES = 2
+"""Receive socket buffer of the UDP receiver, in frames (see ``_setup_socket_buffer``)."""
+RMEM_DEFAULT_PATH = "/proc/sys/net/core/rmem_default"
 RMEM_MAX_PATH = "/proc/sys/net/core/rmem_max"
 
 
@@ -217,6 +220,11 @@ def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
         return None
 
 
+def rmem_default_bytes() -> int | None:
+    """A new socket's receive buffer (``net.core.rmem_default``), None if unknown."""
+    return rmem_max_bytes(RMEM_DEFAULT_PATH)
+
+
 def socket_buffer_warning(wanted_bytes: int, rmem_max: int | None) -> str | None:
     """The start-up warning when ``net.core.rmem_max`` caps a wanted socket buffer."""
     if rmem_max is None or wanted_bytes <= rmem_max:
@@ -226,6 +234,39 @@ def socket_buffer_warning(wanted_bytes: int, rmem_max: int | None) -> str | None
         f"{wanted_bytes} wanted: frames may lose packets; raise it with "
         f"'sysctl -w net.core.rmem_max={wanted_bytes}' (and in /etc/sysctl.d/ to keep it)"
     )
+
+
+def can_open_packet_sockets() -> bool:
+    """True when this process may open ``AF_PACKET`` sockets (``CAP_NET_RAW``), the
+    test Aravis itself makes before it uses its packet ring."""
+    try:
+        probe = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
+    except (OSError, AttributeError):
+        return False
+    probe.close()
+    return True
+
+
+def use_packet_ring(
+    transport: TransportSettings, payload_bytes: int, rmem_default: int | None
+) -> bool:
+    """Whether Aravis should receive a GigE stream through its ``AF_PACKET`` ring.
+
+    ``transport.packet_socket`` True/False decides.  None (automatic): the UDP socket
+    when one frame burst fits in a quarter of the socket's default receive buffer
+    (``net.core.rmem_default``: Aravis sizes the buffer only once the first frame has
+    started, and the kernel charges an 8 KiB datagram about 16 KiB), or when
+    ``socket_buffer_bytes`` asks for the socket; otherwise the ring if the process has
+    ``CAP_NET_RAW``.  The socket is filtered by port in the kernel; while Aravis 0.8
+    sets its ring up, it reads every packet on the interface as stream data for a moment.
+    """
+    if transport.packet_socket is not None:
+        return transport.packet_socket
+    if transport.socket_buffer_bytes is not None:
+        return False
+    if rmem_default is not None and 4 * payload_bytes <= rmem_default:
+        return False
+    return can_open_packet_sockets()
 
 
 USB3_INTERFACE = "USB3Vision"
@@ -806,18 +847,21 @@ class AravisCamera(CameraContext):
         if self._stream is None or payload != self._payload:
             self._stream = None
             with self._gerrors("stream"):
+                ring = False
                 if isinstance(self._device, ar.GvDevice):
+                    ring = use_packet_ring(
+                        self.transport, payload, rmem_max_bytes(RMEM_DEFAULT_PATH)
+                    )
                     self._device.set_stream_options(
-                        ar.GvStreamOption.NONE
-                        if self.transport.packet_socket
-                        else ar.GvStreamOption.PACKET_SOCKET_DISABLED
+                        ar.GvStreamOption.NONE if ring else ar.GvStreamOption.PACKET_SOCKET_DISABLED
                     )
                 self._stream = self._camera.create_stream(None, None)
                 if isinstance(self._stream, ar.GvStream):
                     self._stream.set_property(
                         "frame-retention", int(self.frame_retention_ms * 1000)
                     )
-                    self._setup_socket_buffer(ar, payload)
+                    if not ring:
+                        self._setup_socket_buffer(ar, payload)
                     self._stream.set_property(
                         "packet-resend",
                         ar.GvStreamPacketResend.ALWAYS
@@ -832,16 +876,17 @@ class AravisCamera(CameraContext):
         self._streaming = True
 
     def _setup_socket_buffer(self, ar: types.SimpleNamespace, payload: int) -> None:
-        """Receive buffer of the GVSP socket: as configured, else one frame (AUTO); the
-        default 208 KiB overflows on a 26-52 MB frame burst.  Warns when the kernel's
-        ``net.core.rmem_max`` caps it."""
-        wanted = self.transport.socket_buffer_bytes
-        if wanted is None:
-            self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.AUTO)
-        else:
-            self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
-            self._stream.set_property("socket-buffer-size", int(wanted))
-        warning = socket_buffer_warning(wanted or payload, rmem_max_bytes())
+        """Receive buffer of the GVSP socket: as configured, else two frames and never
+        below the default (the kernel charges a datagram more than its payload: an 8 KiB
+        packet takes a 16 KiB buffer on loopback, so Aravis's AUTO size of one frame
+        drops the end of a burst).  The default 208 KiB overflows on a 26-52 MB frame
+        burst.  Warns when the kernel's ``net.core.rmem_max`` caps it."""
+        wanted = self.transport.socket_buffer_bytes or max(
+            SOCKET_BUFFER_FRAMES * payload, rmem_default_bytes() or 0
+        )
+        self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
+        self._stream.set_property("socket-buffer-size", int(wanted))
+        warning = socket_buffer_warning(wanted, rmem_max_bytes())
         if warning is not None and warning not in self.warnings:
             log.warning("%s: %s", self.label, warning)
             self.warnings.append(warning)

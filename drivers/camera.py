@@ -118,11 +118,12 @@ class TransportSettings:
         frame_retention_ms: how long missing packets are waited for (Aravis).
         packet_resend: ask the camera to resend lost packets.
         packet_socket: Aravis GigE Vision: receive through a memory-mapped ``AF_PACKET``
-            ring (needs ``CAP_NET_RAW``) instead of the UDP socket.  Off by default: while
-            Aravis 0.8 sets the ring up, every packet on the interface is read as stream
-            data for a moment, and a stray packet can hold a buffer for
-            ``frame_retention_ms`` and cost the next frame (seen on a busy loopback).
-            Turn it on only on a network card that carries nothing but the camera.
+            ring (needs ``CAP_NET_RAW``; no ``net.core.rmem_max`` cap) instead of the UDP
+            socket.  None (automatic): the socket for frames that fit in a quarter of the
+            default socket buffer (``net.core.rmem_default``), the ring for larger ones when the
+            process may open it.  While Aravis 0.8 sets the ring up, every packet on the
+            interface is read as stream data for a moment, and a stray packet can cost
+            the next frame (seen on a busy loopback).
     """
 
     packet_size: int | None = None
@@ -132,7 +133,7 @@ class TransportSettings:
     socket_buffer_bytes: int | None = None
     frame_retention_ms: float = 2000.0
     packet_resend: bool = True
-    packet_socket: bool = False
+    packet_socket: bool | None = None
 
 
 @dataclass(frozen=True)

@@ -146,10 +146,10 @@ class TransportConfig(_Model):
         default=2000.0, gt=0, le=60000, description="aravis: wait for missing packets (ms)"
     )
     packet_resend: bool = Field(default=True, description="ask the camera to resend lost packets")
-    packet_socket: bool = Field(
-        default=False,
-        description="aravis GigE: AF_PACKET ring receiver (needs CAP_NET_RAW); only on a "
-        "network card that carries nothing but the camera",
+    packet_socket: bool | None = Field(
+        default=None,
+        description="aravis GigE: AF_PACKET ring receiver (needs CAP_NET_RAW); none: for "
+        "frames larger than a quarter of net.core.rmem_default",
     )
 
 

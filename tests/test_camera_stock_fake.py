@@ -26,9 +26,11 @@ from drivers.camera_errors import CameraTimeout, InvalidSetting
 pytest.importorskip("gi")
 from drivers.aravis_camera import (  # noqa: E402
     AravisCamera,
+    can_open_packet_sockets,
     gvcp_ping,
     rmem_max_bytes,
     socket_buffer_warning,
+    use_packet_ring,
 )
 from drivers.sim.fake_gige import _AddressLock  # noqa: E402
 
@@ -155,16 +157,31 @@ def _packet_socket_inodes_of_this_process() -> set[str]:
     return ours & packet
 
 
-@pytest.mark.parametrize("packet_socket", [False, True])
-def test_the_stream_receiver_is_the_udp_socket_unless_the_packet_ring_is_asked_for(
-    stock_fake: subprocess.Popen[bytes], packet_socket: bool
+@pytest.mark.parametrize("packet_socket", [None, False, True])
+def test_the_stream_receiver_is_the_udp_socket_unless_it_cannot_hold_a_frame(
+    stock_fake: subprocess.Popen[bytes], packet_socket: bool | None
 ) -> None:
     """Aravis reads every packet on the interface as GVSP while it sets its AF_PACKET
-    ring up; a stray one can hold a buffer and cost a frame, so the ring is opt-in."""
-    if packet_socket and os.geteuid() != 0:
+    ring up; a stray one can hold a buffer and cost a frame, so the ring is used only
+    when asked for, or for frames the default socket buffer cannot hold (not 4 KiB)."""
+    if packet_socket and not can_open_packet_sockets():
         pytest.skip("the AF_PACKET ring needs CAP_NET_RAW")
     with AravisCamera(ADDRESS, transport=TransportSettings(packet_socket=packet_socket)) as cam:
         cam.configure(CameraSettings("Mono8", roi=Roi(64, 64)))
         assert cam.grab(timeout_s=5.0).pixels.shape == (64, 64)
         rings = _packet_socket_inodes_of_this_process()
-        assert bool(rings) == packet_socket, rings
+        assert bool(rings) == bool(packet_socket), rings
+
+
+def test_the_automatic_receiver_takes_the_ring_only_for_frames_the_socket_cannot_hold() -> None:
+    auto = TransportSettings()
+    may = can_open_packet_sockets()
+    assert not use_packet_ring(auto, 4096, 212_992)
+    assert not use_packet_ring(auto, 53_248, 212_992)
+    assert use_packet_ring(auto, 53_249, 212_992) == may
+    assert use_packet_ring(auto, 26_214_400, 212_992) == may
+    assert use_packet_ring(auto, 26_214_400, None) == may  # rmem_default unknown
+    asked = TransportSettings(socket_buffer_bytes=64_000_000)  # the socket was asked for
+    assert not use_packet_ring(asked, 26_214_400, 212_992)
+    assert use_packet_ring(TransportSettings(packet_socket=True), 4096, 212_992)
+    assert not use_packet_ring(TransportSettings(packet_socket=False), 26_214_400, 212_992)

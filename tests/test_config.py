@@ -72,12 +72,12 @@ def test_lab_example_config_loads(tmp_path: Path) -> None:
     assert cfg.storage.data_dir == Path("/var/lib/lfcal/data")
     transport = transport_settings(cfg)
     assert (transport.packet_size, transport.buffer_count) == (8192, 4)
-    assert transport.packet_resend and not transport.packet_socket
+    assert transport.packet_resend and transport.packet_socket is None  # automatic
     ring = load_config(
-        write(tmp_path, LAB.read_text().replace("packet_socket = false", "packet_socket = true")),
+        write(tmp_path, LAB.read_text().replace("# packet_socket = true", "packet_socket = true")),
         env={},
     )
-    assert transport_settings(ring).packet_socket
+    assert transport_settings(ring).packet_socket is True
 
 
 def test_config_check_main(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
