@@ -19,7 +19,7 @@ Transport (:class:`drivers.camera.TransportSettings`, ``[camera.transport]``): G
 size, inter-packet delay (``GevSCPD``), ``DeviceLinkThroughputLimit`` (USB3: the
 bandwidth limit), buffer count, frame retention, packet resend and the receive socket
 buffer.  The kernel caps a socket buffer at ``net.core.rmem_max``; when that is smaller
-than the buffer asked for (by default one frame), a warning naming ``net.core.rmem_max``
+than the buffer asked for (by default two frames), a warning naming ``net.core.rmem_max``
 is logged at open and kept in :attr:`AravisCamera.warnings` (``lfcal devices --check``
 prints it): a 26 MB frame burst into a 208 KiB buffer loses packets.
 
@@ -211,8 +211,8 @@ RMEM_DEFAULT_PATH = "/proc/sys/net/core/rmem_default"
 RMEM_MAX_PATH = "/proc/sys/net/core/rmem_max"
 
 
-def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
-    """The kernel's cap on a socket receive buffer (``net.core.rmem_max``), None if unknown."""
+def _sysctl_int(path: str) -> int | None:
+    """The first integer of a ``/proc/sys`` file, None if unreadable."""
     try:
         with open(path, encoding="ascii") as handle:
             return int(handle.read().split()[0])
@@ -220,9 +220,14 @@ def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
         return None
 
 
+def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
+    """The kernel's cap on a socket receive buffer (``net.core.rmem_max``), None if unknown."""
+    return _sysctl_int(path)
+
+
 def rmem_default_bytes() -> int | None:
     """A new socket's receive buffer (``net.core.rmem_default``), None if unknown."""
-    return rmem_max_bytes(RMEM_DEFAULT_PATH)
+    return _sysctl_int(RMEM_DEFAULT_PATH)
 
 
 def socket_buffer_warning(wanted_bytes: int, rmem_max: int | None) -> str | None:
@@ -848,10 +853,9 @@ class AravisCamera(CameraContext):
             self._stream = None
             with self._gerrors("stream"):
                 ring = False
+                rmem_default = rmem_default_bytes()
                 if isinstance(self._device, ar.GvDevice):
-                    ring = use_packet_ring(
-                        self.transport, payload, rmem_max_bytes(RMEM_DEFAULT_PATH)
-                    )
+                    ring = use_packet_ring(self.transport, payload, rmem_default)
                     self._device.set_stream_options(
                         ar.GvStreamOption.NONE if ring else ar.GvStreamOption.PACKET_SOCKET_DISABLED
                     )
@@ -861,7 +865,7 @@ class AravisCamera(CameraContext):
                         "frame-retention", int(self.frame_retention_ms * 1000)
                     )
                     if not ring:
-                        self._setup_socket_buffer(ar, payload)
+                        self._setup_socket_buffer(ar, payload, rmem_default)
                     self._stream.set_property(
                         "packet-resend",
                         ar.GvStreamPacketResend.ALWAYS
@@ -875,14 +879,16 @@ class AravisCamera(CameraContext):
             self._camera.start_acquisition()
         self._streaming = True
 
-    def _setup_socket_buffer(self, ar: types.SimpleNamespace, payload: int) -> None:
+    def _setup_socket_buffer(
+        self, ar: types.SimpleNamespace, payload: int, rmem_default: int | None
+    ) -> None:
         """Receive buffer of the GVSP socket: as configured, else two frames and never
         below the default (the kernel charges a datagram more than its payload: an 8 KiB
         packet takes a 16 KiB buffer on loopback, so Aravis's AUTO size of one frame
         drops the end of a burst).  The default 208 KiB overflows on a 26-52 MB frame
         burst.  Warns when the kernel's ``net.core.rmem_max`` caps it."""
         wanted = self.transport.socket_buffer_bytes or max(
-            SOCKET_BUFFER_FRAMES * payload, rmem_default_bytes() or 0
+            SOCKET_BUFFER_FRAMES * payload, rmem_default or 0
         )
         self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
         self._stream.set_property("socket-buffer-size", int(wanted))

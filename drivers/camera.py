@@ -114,7 +114,8 @@ class TransportSettings:
             USB3 Vision through Aravis: the bandwidth limit.
         buffer_count: stream buffers queued to the driver.
         socket_buffer_bytes: the host's receive buffer for the GVSP socket (Aravis);
-            None: sized to one frame.  The kernel caps it at ``net.core.rmem_max``.
+            None: two frames, never below ``net.core.rmem_default``.  The kernel caps
+            it at ``net.core.rmem_max``.
         frame_retention_ms: how long missing packets are waited for (Aravis).
         packet_resend: ask the camera to resend lost packets.
         packet_socket: Aravis GigE Vision: receive through a memory-mapped ``AF_PACKET``

@@ -139,7 +139,7 @@ class TransportConfig(_Model):
     socket_buffer_bytes: int | None = Field(
         default=None,
         gt=0,
-        description="aravis GigE: receive socket buffer (bytes); none: one frame; "
+        description="aravis GigE: receive socket buffer (bytes); none: two frames; "
         "capped by net.core.rmem_max (a warning at start-up says so)",
     )
     frame_retention_ms: float = Field(
