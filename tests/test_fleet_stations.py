@@ -79,19 +79,24 @@ def fresh_fleet(pytestconfig: pytest.Config, pg: PostgresServer) -> tuple[Path, 
     return frame_cache(pytestconfig), database, f"run-{uuid.uuid4().hex[:8]}"
 
 
+CAMERA_SEEDS = {"a": 1, "b": 7}
+"""The two stations of the fleet tests, ``line-a`` and ``line-b``: their cameras' seeds."""
+
+
 def station_config(
-    directory: Path,
-    station_id: str,
+    tmp_path: Path,
+    name: str,
     database: str,
     s3: S3Server,
     *,
     prefix: str,
-    camera_seed: int,
     keep_local: bool = True,
 ) -> Path:
-    """The web tests' simulated station with a shared database and object store (the
-    simulated camera's serial is ``SIM-<scene>-<camera_seed>``; rendered frames do not
-    depend on the seed, so the stations share the frame cache)."""
+    """The web tests' simulated station ``line-<name>`` (in ``tmp_path/<name>``) with a
+    shared database and object store (the simulated camera's serial is
+    ``SIM-<scene>-<seed>``; rendered frames do not depend on the seed, so the stations
+    share the frame cache)."""
+    directory, station_id, camera_seed = tmp_path / name, f"line-{name}", CAMERA_SEEDS[name]
     path = write_config(directory)
     text = path.read_text(encoding="utf-8")
     text = text.replace("seed = 0\n", f"seed = {camera_seed}\n", 1)
@@ -167,14 +172,14 @@ def test_two_stations_share_one_database_and_one_object_store(
 ) -> None:
     cache, database, prefix = fresh_fleet(pytestconfig, pg)
     a = ServerProcess(
-        station_config(tmp_path / "a", "line-a", database, s3, prefix=prefix,
-                       camera_seed=1), cache=cache,
-    )  # fmt: skip
+        station_config(tmp_path, "a", database, s3, prefix=prefix),
+        cache=cache,
+    )
     try:
         b = ServerProcess(
-            station_config(tmp_path / "b", "line-b", database, s3, prefix=prefix,
-                           camera_seed=7, keep_local=False), cache=cache,
-        )  # fmt: skip
+            station_config(tmp_path, "b", database, s3, prefix=prefix, keep_local=False),
+            cache=cache,
+        )
         try:
             job_a, job_b = submit(a), submit(b)
             done_a = wait_for_state(a.client, job_a, FINAL, timeout_s=240)
@@ -227,13 +232,12 @@ def test_kill_9_of_one_station_mid_sweep_is_recovered_by_that_station_alone(
     tmp_path: Path, pytestconfig: pytest.Config, pg: PostgresServer, s3: S3Server
 ) -> None:
     cache, database, prefix = fresh_fleet(pytestconfig, pg)
-    config_a = station_config(tmp_path / "a", "line-a", database, s3, prefix=prefix,
-                              camera_seed=1)  # fmt: skip
+    config_a = station_config(tmp_path, "a", database, s3, prefix=prefix)
     a = ServerProcess(config_a, cache=cache)
     b = ServerProcess(
-        station_config(tmp_path / "b", "line-b", database, s3, prefix=prefix,
-                       camera_seed=7), cache=cache,
-    )  # fmt: skip
+        station_config(tmp_path, "b", database, s3, prefix=prefix),
+        cache=cache,
+    )
     try:
         job_a = submit(a)
         wait_until(
@@ -289,9 +293,9 @@ def test_an_object_store_outage_mid_sweep_loses_no_frame(
 ) -> None:
     cache, database, prefix = fresh_fleet(pytestconfig, pg)
     a = ServerProcess(
-        station_config(tmp_path / "a", "line-a", database, s3, prefix=prefix,
-                       camera_seed=1), cache=cache,
-    )  # fmt: skip
+        station_config(tmp_path, "a", database, s3, prefix=prefix),
+        cache=cache,
+    )
     stopped = False
     try:
         job = submit(a)
@@ -331,9 +335,9 @@ def test_a_station_that_loses_its_ownership_stops_and_starts_nothing_until_it_is
 ) -> None:
     cache, database, prefix = fresh_fleet(pytestconfig, pg)
     a = ServerProcess(
-        station_config(tmp_path / "a", "line-a", database, s3, prefix=prefix,
-                       camera_seed=1), cache=cache,
-    )  # fmt: skip
+        station_config(tmp_path, "a", database, s3, prefix=prefix),
+        cache=cache,
+    )
     try:
         health = a.client.get(f"{API}/healthz")
         assert health.status_code == 200
