@@ -17,6 +17,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
+from zaber_support import axis_config
 
 from drivers import errors
 from drivers.sim.zaber_emulator import AxisSpec, DeviceSpec, ZaberEmulator
@@ -134,23 +135,10 @@ def test_our_driver_after_zaber_motion_left_the_chain(emu: ZaberEmulator) -> Non
 # --------------------------------------------------------------------------- our driver
 
 
-def _rail_config(**extra: object) -> ZaberAxisConfig:
-    values: dict[str, object] = {
-        "name": "rail",
-        "microstep_um": 0.1,
-        "tolerance_um": 0.5,
-        "timeout_scale": 1.0 / SPEEDUP,
-        "timeout_margin_s": 0.5,
-        "poll_interval_s": 0.002,
-    }
-    values.update(extra)
-    return ZaberAxisConfig(**values)  # type: ignore[arg-type]
-
-
 @pytest.mark.parametrize("firmware", [6, 7])
 def test_ni_after_stop_does_not_fail_the_next_good_move(firmware: int) -> None:
     with ZaberEmulator(transport="pty", speedup=SPEEDUP, firmware=firmware) as emu:
-        rail = open_rail(emu.url, _rail_config())
+        rail = open_rail(emu.url, axis_config(speedup=SPEEDUP))
         try:
             rail.home()
             pending = rail.start_move_abs_mm(80.0)
@@ -173,7 +161,7 @@ def test_ni_after_stop_does_not_fail_the_next_good_move(firmware: int) -> None:
 
 def test_interruption_during_our_move_is_still_reported() -> None:
     with ZaberEmulator(transport="pty", speedup=SPEEDUP) as emu:
-        rail = open_rail(emu.url, _rail_config())
+        rail = open_rail(emu.url, axis_config(speedup=SPEEDUP))
         try:
             rail.home()
             pending = rail.start_move_abs_mm(80.0)
@@ -190,7 +178,7 @@ def test_firmware_6_identity_and_settings_left_as_found() -> None:
     with ZaberEmulator([spec], transport="pty", speedup=SPEEDUP) as emu:
         stored = (emu.setting(1, 1, "maxspeed"), emu.setting(1, 1, "accel"))
         assert not emu.device_checksum(1)
-        rail = open_rail(emu.url, _rail_config(speed_mm_s=5.0, accel_mm_s2=50.0))
+        rail = open_rail(emu.url, axis_config(speedup=SPEEDUP, speed_mm_s=5.0, accel_mm_s2=50.0))
         try:
             identity = rail.identity()
             assert identity.model == "device id 44123, peripheral id 70245"
@@ -207,7 +195,7 @@ def test_firmware_6_identity_and_settings_left_as_found() -> None:
 
 def test_firmware_7_connect_writes_no_setting() -> None:
     with ZaberEmulator(transport="pty", speedup=SPEEDUP, firmware=7, checksum=True) as emu:
-        rail = open_rail(emu.url, _rail_config(speed_mm_s=5.0, accel_mm_s2=50.0))
+        rail = open_rail(emu.url, axis_config(speedup=SPEEDUP, speed_mm_s=5.0, accel_mm_s2=50.0))
         try:
             rail.home()
             rail.move_abs_mm(10.0)

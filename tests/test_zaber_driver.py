@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
+from zaber_support import axis_config
 
 from drivers import errors
 from drivers.axis import Axis, AxisLimits
@@ -27,18 +28,7 @@ SPEEDUP = 50.0
 
 def cfg(name: str = "rail", device: int = 1, axis: int = 1, **extra: object) -> ZaberAxisConfig:
     """Axis config whose motion timeouts match the emulator's speedup."""
-    values: dict[str, object] = {
-        "name": name,
-        "device": device,
-        "axis": axis,
-        "microstep_um": 0.1,
-        "tolerance_um": 0.5,
-        "timeout_scale": 1.0 / SPEEDUP,
-        "timeout_margin_s": 0.5,
-        "poll_interval_s": 0.002,
-    }
-    values.update(extra)
-    return ZaberAxisConfig(**values)  # type: ignore[arg-type]
+    return axis_config(name, device, axis, speedup=SPEEDUP, **extra)
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float = 3.0) -> None:
