@@ -47,8 +47,6 @@ import ctypes
 import ctypes.util
 import ipaddress
 import logging
-import socket
-import struct
 import threading
 import time
 import types
@@ -80,12 +78,23 @@ from drivers.camera_errors import (
     IncompleteFrame,
     InvalidSetting,
 )
+from drivers.gige_host import (
+    GVBS_CONTROL_CHANNEL_PRIVILEGE,
+    gvcp_ping,
+    gvcp_read_register,
+    local_address_for,
+    resolve_ipv4,
+    rmem_default_bytes,
+    rmem_max_bytes,
+    socket_buffer_warning,
+    use_packet_ring,
+)
 from drivers.sfnc import SfncCamera
 
 log = logging.getLogger(__name__)
 
-GVCP_PORT = 3956
-GVBS_CONTROL_CHANNEL_PRIVILEGE = 0x0A00
+SOCKET_BUFFER_FRAMES = 2
+"""Receive socket buffer of the UDP receiver, in frames (see ``_setup_socket_buffer``)."""
 LOOPBACK_PACKET_SIZE = 8192
 """GVSP packet size used on loopback (no MTU limit there; 8192 keeps 50 MB frames fast)."""
 
@@ -154,138 +163,8 @@ def _image_array(buffer: Any) -> np.ndarray | bytes:
         return bytes(buffer.get_image_data())
 
 
-def _resolve_ipv4(address: str) -> str | None:
-    """IPv4 literal for an address or host name; None if it does not resolve."""
-    try:
-        return str(ipaddress.IPv4Address(address))
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(address, GVCP_PORT, socket.AF_INET, socket.SOCK_DGRAM)
-    except (socket.gaierror, UnicodeError):
-        return None
-    return str(infos[0][4][0]) if infos else None
-
-
-def gvcp_read_register(ip: str, address: int, timeout_s: float = 0.5, tries: int = 3) -> int | None:
-    """Read one bootstrap register of the GigE Vision device at ``ip``; None if no answer.
-
-    One unicast GVCP READREG command to ``ip``:3956 per try (never a broadcast); devices
-    answer reads from any application, even while another one controls them.  Used to
-    tell "camera absent" or "controlled by someone else" in well under Aravis's 2.5 s of
-    GVCP retries.
-    """
-    request_id = 0x4C46
-    packet = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, request_id, address)
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.connect((ip, GVCP_PORT))
-        except OSError:
-            return None
-        for _ in range(tries):
-            deadline = time.monotonic() + timeout_s / tries
-            try:
-                sock.send(packet)
-                while (remaining := deadline - time.monotonic()) > 0:
-                    sock.settimeout(remaining)
-                    ack = sock.recv(64)
-                    if len(ack) >= 12:
-                        status, answer, _length, ack_id, value = struct.unpack(">HHHHI", ack[:12])
-                        if answer == 0x0081 and ack_id == request_id and status == 0:
-                            return int(value)
-            except ConnectionRefusedError:  # ICMP port unreachable: nothing listens
-                threading.Event().wait(max(0.0, deadline - time.monotonic()))
-            except OSError:  # timeout
-                pass
-    return None
-
-
-def gvcp_ping(ip: str, timeout_s: float = 0.5, tries: int = 3) -> bool:
-    """True if a GigE Vision device answers at ``ip`` (see :func:`gvcp_read_register`)."""
-    return gvcp_read_register(ip, 0x0000, timeout_s, tries) is not None
-
-
-SOCKET_BUFFER_FRAMES = 2
-"""Receive socket buffer of the UDP receiver, in frames (see ``_setup_socket_buffer``)."""
-RMEM_DEFAULT_PATH = "/proc/sys/net/core/rmem_default"
-RMEM_MAX_PATH = "/proc/sys/net/core/rmem_max"
-
-
-def _sysctl_int(path: str) -> int | None:
-    """The first integer of a ``/proc/sys`` file, None if unreadable."""
-    try:
-        with open(path, encoding="ascii") as handle:
-            return int(handle.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def rmem_max_bytes(path: str = RMEM_MAX_PATH) -> int | None:
-    """The kernel's cap on a socket receive buffer (``net.core.rmem_max``), None if unknown."""
-    return _sysctl_int(path)
-
-
-def rmem_default_bytes() -> int | None:
-    """A new socket's receive buffer (``net.core.rmem_default``), None if unknown."""
-    return _sysctl_int(RMEM_DEFAULT_PATH)
-
-
-def socket_buffer_warning(wanted_bytes: int, rmem_max: int | None) -> str | None:
-    """The start-up warning when ``net.core.rmem_max`` caps a wanted socket buffer."""
-    if rmem_max is None or wanted_bytes <= rmem_max:
-        return None
-    return (
-        f"the GVSP socket buffer is capped at net.core.rmem_max = {rmem_max} bytes, "
-        f"{wanted_bytes} wanted: frames may lose packets; raise it with "
-        f"'sysctl -w net.core.rmem_max={wanted_bytes}' (and in /etc/sysctl.d/ to keep it)"
-    )
-
-
-def can_open_packet_sockets() -> bool:
-    """True when this process may open ``AF_PACKET`` sockets (``CAP_NET_RAW``), the
-    test Aravis itself makes before it uses its packet ring."""
-    try:
-        probe = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x0003))
-    except (OSError, AttributeError):
-        return False
-    probe.close()
-    return True
-
-
-def use_packet_ring(
-    transport: TransportSettings, payload_bytes: int, rmem_default: int | None
-) -> bool:
-    """Whether Aravis should receive a GigE stream through its ``AF_PACKET`` ring.
-
-    ``transport.packet_socket`` True/False decides.  None (automatic): the UDP socket
-    when one frame burst fits in a quarter of the socket's default receive buffer
-    (``net.core.rmem_default``: Aravis sizes the buffer only once the first frame has
-    started, and the kernel charges an 8 KiB datagram about 16 KiB), or when
-    ``socket_buffer_bytes`` asks for the socket; otherwise the ring if the process has
-    ``CAP_NET_RAW``.  The socket is filtered by port in the kernel; while Aravis 0.8
-    sets its ring up, it reads every packet on the interface as stream data for a moment.
-    """
-    if transport.packet_socket is not None:
-        return transport.packet_socket
-    if transport.socket_buffer_bytes is not None:
-        return False
-    if rmem_default is not None and 4 * payload_bytes <= rmem_default:
-        return False
-    return can_open_packet_sockets()
-
-
 USB3_INTERFACE = "USB3Vision"
 GIGE_INTERFACE = "GigEVision"
-
-
-def _local_address_for(ip: str) -> str | None:
-    """Address of the local interface the kernel routes ``ip`` through (sends nothing)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.connect((ip, GVCP_PORT))
-        except OSError:
-            return None
-        return str(sock.getsockname()[0])
 
 
 class _AravisNodes:
@@ -751,7 +630,7 @@ class AravisCamera(CameraContext):
         if self.interface == "usb3":
             self._connect_usb3(ar)
             return
-        ip = _resolve_ipv4(self.address) if self.address else None
+        ip = resolve_ipv4(self.address) if self.address else None
         if ip is None:
             name = self.address or self.serial
             if not self.allow_discovery:
@@ -771,7 +650,7 @@ class AravisCamera(CameraContext):
                 ) from None
             self._device = self._camera.get_device()
             return
-        local = _local_address_for(ip)
+        local = local_address_for(ip)
         if local is None:
             raise CameraNotFound(
                 f"no network interface routes to {ip}",

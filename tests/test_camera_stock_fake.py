@@ -24,8 +24,8 @@ from drivers.camera import CameraSettings, Roi, TransportSettings
 from drivers.camera_errors import CameraTimeout, InvalidSetting
 
 pytest.importorskip("gi")
-from drivers.aravis_camera import (  # noqa: E402
-    AravisCamera,
+from drivers.aravis_camera import AravisCamera  # noqa: E402
+from drivers.gige_host import (  # noqa: E402
     can_open_packet_sockets,
     gvcp_ping,
     rmem_max_bytes,
