@@ -30,7 +30,6 @@ from drivers.gige_host import (  # noqa: E402
     gvcp_ping,
     rmem_max_bytes,
     socket_buffer_warning,
-    use_packet_ring,
 )
 from drivers.sim.fake_gige import _AddressLock  # noqa: E402
 
@@ -171,17 +170,3 @@ def test_the_stream_receiver_is_the_udp_socket_unless_it_cannot_hold_a_frame(
         assert cam.grab(timeout_s=5.0).pixels.shape == (64, 64)
         rings = _packet_socket_inodes_of_this_process()
         assert bool(rings) == bool(packet_socket), rings
-
-
-def test_the_automatic_receiver_takes_the_ring_only_for_frames_the_socket_cannot_hold() -> None:
-    auto = TransportSettings()
-    may = can_open_packet_sockets()
-    assert not use_packet_ring(auto, 4096, 212_992)
-    assert not use_packet_ring(auto, 53_248, 212_992)
-    assert use_packet_ring(auto, 53_249, 212_992) == may
-    assert use_packet_ring(auto, 26_214_400, 212_992) == may
-    assert use_packet_ring(auto, 26_214_400, None) == may  # rmem_default unknown
-    asked = TransportSettings(socket_buffer_bytes=64_000_000)  # the socket was asked for
-    assert not use_packet_ring(asked, 26_214_400, 212_992)
-    assert use_packet_ring(TransportSettings(packet_socket=True), 4096, 212_992)
-    assert not use_packet_ring(TransportSettings(packet_socket=False), 26_214_400, 212_992)

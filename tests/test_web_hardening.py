@@ -72,7 +72,8 @@ def test_descriptors_stay_flat_over_100_bursts_of_40_concurrent_requests(
     pid = server.proc.pid
     errors: list[str] = []
 
-    host, port = urlsplit(server.url).hostname, urlsplit(server.url).port
+    url = urlsplit(server.url)
+    host, port = url.hostname, url.port
     assert host is not None
 
     def one(k: int) -> None:
