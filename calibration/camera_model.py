@@ -156,6 +156,11 @@ class CameraModelFit:
     covariance: NDArray[np.float64] = field(repr=False, default_factory=lambda: np.zeros((6, 6)))
     direction: int = 1
     image_scale: dict[str, Any] = field(default_factory=dict)
+    disparity_error_scale: NDArray[np.float64] = field(
+        repr=False, default_factory=lambda: np.ones(0)
+    )
+    """Per frame (NaN where no disparity): the factor the fit applied to the frame's Q error
+    (its block's scatter times its robust inflation)."""
 
     def q_at_rail(
         self, rail_mm: NDArray[np.float64]
@@ -211,8 +216,9 @@ class _Model:
         self.dir = priors.direction
         self.q_ok = np.isfinite(data.Q) & np.isfinite(data.Q_se) & (data.Q > 0)
         self.m_ok = np.isfinite(data.inv_magnification) & np.isfinite(data.inv_magnification_se)
-        self.q_scale = 1.0
-        self.m_scale = 1.0
+        # per frame: the block's scatter (reduced chi-square) times the frame's robust inflation
+        self.q_scale: NDArray[np.float64] | float = 1.0
+        self.m_scale: NDArray[np.float64] | float = 1.0
         self.use_prior: dict[str, bool] = {name: False for name in PRIORS}
         self.use_scale = False
 
@@ -279,6 +285,36 @@ class _Model:
 
     def residuals(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.concatenate(list(self.blocks(p).values()))
+
+
+HUBER_C = 2.5
+"""Frames whose residual exceeds this many robust sigmas of their block get their error
+inflated to match (Huber weights): a frame whose corners lock to the pixel grid near focus
+(point-sampled or very sharp micro-images) measures Q and the magnification with errors
+its own fit does not show, and must not pull the camera."""
+
+
+def _reweight(model: _Model, p: NDArray[np.float64]) -> None:
+    """Per-frame error scales of the disparity and magnification blocks at parameters ``p``.
+
+    Each block's residuals in units of the frames' own errors, ``z``: a robust
+    scale ``s = 1.4826·median|z|``; a frame with ``|z| > HUBER_C·s`` has its error
+    multiplied by ``|z|/(HUBER_C·s)``; then the whole block by its reduced
+    chi-square when that exceeds one.
+    """
+    model.q_scale, model.m_scale = 1.0, 1.0
+    blocks = model.blocks(p, priors=False)
+    scales = []
+    for name, n_par in (("disparity", 3), ("magnification", 2)):
+        z = blocks[name]
+        if z.size <= n_par:
+            scales.append(np.ones(z.size))
+            continue
+        robust = 1.4826 * float(np.median(np.abs(z)))
+        inflation = np.maximum(1.0, np.abs(z) / max(HUBER_C * robust, 1e-12))
+        chi2 = float(np.sum((z / inflation) ** 2) / (z.size - n_par))
+        scales.append(inflation * np.sqrt(max(chi2, 1.0)))
+    model.q_scale, model.m_scale = scales
 
 
 def check_priors(priors: Priors, rail_mm: NDArray[np.float64]) -> None:
@@ -386,14 +422,9 @@ def fit_camera_model(data: SweepMeasurements, priors: Priors) -> CameraModelFit:
     # a first fit with every prior (always well posed), then decide which priors the sweep needs
     model.use_prior = {n: True for n in PRIORS}
     p = _solve(model, _start(model))
-    for _ in range(2):
-        # each observation block at its own scatter (reduced chi-square >= 1)
-        blocks = model.blocks(p, priors=False)
-        n_m = int(model.m_ok.sum())
-        chi_q = float(np.sum(blocks["disparity"] ** 2) / max(1, blocks["disparity"].size - 3))
-        chi_m = float(np.sum(blocks["magnification"] ** 2) / max(1, n_m - 2)) if n_m > 2 else 1.0
-        model.q_scale *= float(np.sqrt(max(chi_q, 1.0)))
-        model.m_scale *= float(np.sqrt(max(chi_m, 1.0)))
+    for _ in range(3):
+        # each observation block at its own (robust) scatter
+        _reweight(model, p)
         sweep_se = _sweep_only_uncertainty(model, p)
         model.use_prior = {
             n: bool(sweep_se[n] > PRIOR_NEEDED_FRACTION * priors.tolerance(n)) for n in PRIORS
@@ -430,8 +461,8 @@ def fit_camera_model(data: SweepMeasurements, priors: Priors) -> CameraModelFit:
             )
             if blocks["magnification"].size > 2
             else float("nan"),
-            "disparity_scale": model.q_scale,
-            "magnification_scale": model.m_scale,
+            "disparity_scale": _median_scale(model.q_scale),
+            "magnification_scale": _median_scale(model.m_scale),
         },
         magnification_frames=int(model.m_ok.sum()),
         inv_q_model=model.inv_q(p),
@@ -440,7 +471,20 @@ def fit_camera_model(data: SweepMeasurements, priors: Priors) -> CameraModelFit:
         covariance=cov,
         direction=model.dir,
         image_scale=scale_check,
+        disparity_error_scale=_per_frame(model.q_ok, model.q_scale),
     )
+
+
+def _median_scale(scale: NDArray[np.float64] | float) -> float:
+    """The typical error scale a block's frames got (1 for an empty block)."""
+    values = np.atleast_1d(np.asarray(scale, dtype=np.float64))
+    return float(np.median(values)) if values.size else 1.0
+
+
+def _per_frame(ok: NDArray[np.bool_], values: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    out = np.full(ok.size, np.nan)
+    out[ok] = values
+    return out
 
 
 def _image_scale_check(model: _Model, p: NDArray[np.float64]) -> dict[str, Any]:

@@ -32,7 +32,13 @@ from .camera_model import (
     SweepMeasurements,
     fit_camera_model,
 )
-from .defocus import DefocusFit, DefocusNotDetermined, EdgeObservation, fit_defocus
+from .defocus import (
+    DefocusFit,
+    DefocusNotDetermined,
+    EdgeObservation,
+    fit_defocus,
+    rough_focus,
+)
 from .edge_spread import BinnedEsf
 from .focus import corner_size_mm, paper_focus
 from .mla_grid import MlaGrid
@@ -160,18 +166,18 @@ one curvature for the sensor) is not exact."""
 
 
 def _shading_bias(
-    defocus: DefocusFit, grid: MlaGrid, g: SweepGeometry
+    kappa: float, grid: MlaGrid, g: SweepGeometry
 ) -> tuple[float, float, dict[str, Any]]:
     """``η`` of the disparity's shading bias ``Q·(1 + η(Q - Q0))`` and its uncertainty.
 
     ``η = Var(p)·c`` (:mod:`calibration.shading`): ``c`` from the white image,
-    the aperture variance from the defocus fit (its RMS width is that of a
-    box ``κ·D/δ`` wide).
+    the aperture variance from the defocus fit's ``κ`` (its RMS width is that
+    of a box ``κ·D/δ`` wide).
     """
     shading = grid.shading
     if shading is None or not np.isfinite(shading.curvature_px2):
         return 0.0, 0.0, {"applied": False}
-    variance = (defocus.kappa * g.lens_pitch_px) ** 2 / 12.0
+    variance = (kappa * g.lens_pitch_px) ** 2 / 12.0
     eta = shading.bias_coefficient(variance)
     eta_se = float(np.hypot(shading.curvature_se_px2 * variance, SHADING_MODEL_UNCERTAINTY * eta))
     info = {
@@ -318,6 +324,57 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
     }
 
 
+def _defocus_or_raise(
+    observations: list[EdgeObservation],
+    g: SweepGeometry,
+    partial: dict[str, Any],
+) -> DefocusFit:
+    """The whole-sweep defocus fit; :class:`FocusNotDeterminedError` with ``partial``."""
+    try:
+        defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px)
+    except DefocusNotDetermined as exc:
+        partial["error"] = f"focus plane not determined: {exc}"
+        raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
+    partial["focus"] = {"defocus_model": _defocus_dict(defocus)}
+    return defocus
+
+
+def _camera_or_raise(
+    focus: tuple[float, float, float],
+    arr: dict[str, NDArray[np.float64]],
+    inv_m: NDArray[np.float64],
+    inv_m_se: NDArray[np.float64],
+    grid: MlaGrid,
+    g: SweepGeometry,
+    partial: dict[str, Any],
+) -> tuple[CameraModelFit, SweepMeasurements, dict[str, Any]]:
+    """The camera from the sweep with the defocus's ``focus = (Q0, its σ, κ)``;
+    :class:`PriorError` with ``partial`` when the data-sheet values admit no thin-lens
+    camera."""
+    q0, q0_se, kappa = focus
+    eta, eta_se, shading = _shading_bias(kappa, grid, g)
+    measurements = SweepMeasurements(
+        rail_mm=arr["rail_mm"],
+        Q=arr["Q"],
+        Q_se=arr["Q_se"],
+        inv_magnification=inv_m,
+        inv_magnification_se=inv_m_se,
+        Q0=q0,
+        Q0_se=q0_se,
+        eta=eta,
+        eta_se=eta_se,
+        # the pitch's rim-shading correction needs the white image's shading
+        image_scale=grid.scale if shading["applied"] else float("nan"),
+        image_scale_se=grid.scale_se,
+    )
+    try:
+        cam = fit_camera_model(measurements, g.priors())
+    except ModelError as exc:
+        partial["error"] = str(exc)
+        raise PriorError(str(exc), _json_clean(partial)) from exc
+    return cam, measurements, shading
+
+
 def combine(
     frames: Iterable[FrameSummary],
     geometry: SweepGeometry,
@@ -376,34 +433,23 @@ def combine(
             "no magnification, so the main-lens focal length and the rail zero come from "
             "their data-sheet values and tolerances; Lr, Lp and La are not available"
         )
-    try:
-        defocus = fit_defocus(_observations(frames), lens_pitch_px=g.lens_pitch_px)
-    except DefocusNotDetermined as exc:
-        partial["error"] = f"focus plane not determined: {exc}"
-        raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
-    partial["focus"] = {"defocus_model": _defocus_dict(defocus)}
     inv_m, inv_m_se = _inverse_magnification(frames, g)
+    observations = _observations(frames)
+    # the defocus is set by the camera's Q(u), which the calibrated camera gives more precisely
+    # than any one frame's disparity (near focus a frame's Q scatters most, and there the blur
+    # depends most on it): the camera first, with a rough Q0 (its Q(u) barely depends on it),
+    # then the defocus on the camera's Q(u), then the camera with the defocus's Q0
+    rough = rough_focus(observations)
+    if not np.isfinite(rough[0]):
+        _defocus_or_raise(observations, g, partial)  # says why the blur cannot be fitted
+    cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
+    q_model, _ = cam.q_at_rail(np.array([fs.rail_mm for fs in frames]))
+    by_frame = {fs.index: float(q) for fs, q in zip(frames, q_model, strict=True)}
+    observations = [replace(o, Q=by_frame[o.frame]) for o in observations]
+    defocus = _defocus_or_raise(observations, g, partial)
+    focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
+    cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
     priors = g.priors()
-    eta, eta_se, shading = _shading_bias(defocus, grid, g)
-    measurements = SweepMeasurements(
-        rail_mm=arr["rail_mm"],
-        Q=arr["Q"],
-        Q_se=arr["Q_se"],
-        inv_magnification=inv_m,
-        inv_magnification_se=inv_m_se,
-        Q0=defocus.Q0,
-        Q0_se=defocus.Q0_se,
-        eta=eta,
-        eta_se=eta_se,
-        # the pitch's rim-shading correction needs the white image's shading
-        image_scale=grid.scale if shading["applied"] else float("nan"),
-        image_scale_se=grid.scale_se,
-    )
-    try:
-        cam = fit_camera_model(measurements, priors)
-    except ModelError as exc:
-        partial["error"] = str(exc)
-        raise PriorError(str(exc), _json_clean(partial)) from exc
     corner_spread = _corner_systematic(frames, measurements, priors, cam)
     values, se = cam.values, cam.uncertainty
     rail = arr["rail_mm"]
@@ -420,9 +466,9 @@ def combine(
     # per frame, the calibrated camera's patch size at that distance beside the measured one;
     # the measured Q's standard error at the disparity's scatter about the camera, with a floor
     q_model, q_model_se = cam.q_at_rail(rail)
-    scale = cam.chi2_reduced.get("disparity_scale", 1.0)
     for k, d in enumerate(frames_out):
-        if d.get("Q") is not None and d.get("Q_se") is not None:
+        scale = float(cam.disparity_error_scale[k])
+        if d.get("Q") is not None and d.get("Q_se") is not None and math.isfinite(scale):
             d["Q_se_fit"] = d["Q_se"]
             d["Q_se"] = float(math.hypot(d["Q_se"] * scale, Q_SYSTEMATIC_RELATIVE * d["Q"]))
         d["patch_size_measured_px"] = d["patch_size_px"]

@@ -42,7 +42,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .edge_fit import EdgeFits, fit_edges
-from .edge_spread import EdgeProfiles
 from .lens_grid import LensGrid
 
 
@@ -62,7 +61,6 @@ class CornerOptions:
     max_block_offset_px: float = 3.0
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
-    blur_resolved_contrast: float = 0.97
 
 
 @dataclass
@@ -84,7 +82,12 @@ class CornerMeasurement:
     ok: bool = False
     reason: str = ""
     detail: str = ""
-    edge_profiles: EdgeProfiles | None = field(default=None, repr=False)
+    half_offset_px: tuple[float, float] = (0.0, 0.0)
+    """Half the offset between the two opposite blocks of each edge, ``((x_A - x_D)/2,
+    (y_B - y_C)/2)``: 0 for the standard corner, ``±Cr/2`` imaged for the reference corner."""
+    slopes: tuple[float, float] = (0.0, 0.0)
+    """``(dx/dy of the vertical edge, dy/dx of the horizontal edge)``: a board turned about
+    the optical axis."""
 
     @property
     def size_px(self) -> float:
@@ -92,7 +95,7 @@ class CornerMeasurement:
         return 0.5 * (self.size_x_px + self.size_y_px)
 
     def to_dict(self) -> dict[str, object]:
-        d = {k: v for k, v in self.__dict__.items() if k != "edge_profiles"}
+        d = dict(self.__dict__)
         d["size_px"] = self.size_px
         return d
 
@@ -418,22 +421,12 @@ def _measure_batch(
     for b in all_blocks:
         by_owner.setdefault(b.owner, {})[b.name] = b
     for owner, owned in by_owner.items():
-        i, j = results[owner].lens_i, results[owner].lens_j
-        cx, cy = image_grid.centre(i, j)
-        _finish(
-            results[owner], owned, fits, stacked, (float(cx), float(cy)), image_grid.pitch_px, opts
-        )
+        _finish(results[owner], owned, fits, opts)
     return results
 
 
 def _finish(
-    m: CornerMeasurement,
-    blocks: dict[str, _Block],
-    fits: EdgeFits,
-    profiles: NDArray[np.float32],
-    centre: tuple[float, float],
-    image_pitch_px: float,
-    opts: CornerOptions,
+    m: CornerMeasurement, blocks: dict[str, _Block], fits: EdgeFits, opts: CornerOptions
 ) -> None:
     missing = [n for n in "ADBC" if n not in blocks]
     if missing:
@@ -483,6 +476,8 @@ def _finish(
         return
     m.x = 0.5 * (xa + xd)
     m.y = 0.5 * (yb + yc)
+    m.half_offset_px = (0.5 * (xa - xd), 0.5 * (yb - yc))
+    m.slopes = (x_slope, y_slope)
     m.x_se, m.y_se = x_se, y_se
     m.size_y_px = _deficit_width(per["A"], per["D"], opts.size_window_px)
     m.size_x_px = _deficit_width(per["B"], per["C"], opts.size_window_px)
@@ -492,66 +487,3 @@ def _finish(
     if not m.ok:
         m.reason = "corner size undefined (edge contrast never reaches half)"
         return
-    lines = {
-        "A": (xa, x_slope, x_ref, m.y),
-        "D": (xd, x_slope, x_ref, m.y),
-        "B": (yb, y_slope, y_ref, m.x),
-        "C": (yc, y_slope, y_ref, m.x),
-    }
-    m.edge_profiles = _blur_profiles(
-        blocks, per, lines, fits, profiles, centre, image_pitch_px, opts
-    )
-
-
-def _blur_profiles(
-    blocks: dict[str, _Block],
-    per: dict[str, tuple[Any, ...]],
-    lines: dict[str, tuple[float, float, float, float]],
-    fits: EdgeFits,
-    profiles: NDArray[np.float32],
-    centre: tuple[float, float],
-    image_pitch_px: float,
-    opts: CornerOptions,
-) -> EdgeProfiles:
-    """The clean edge profiles of one micro-image, placed relative to their edge line.
-
-    A profile is kept for the blur measurement when its edge is fully resolved
-    (contrast at least ``blur_resolved_contrast`` of the far contrast), it is
-    at least ``blur_clearance_px`` from the corner (the other edge does not
-    reach into it) and every sample lies within ``blur_radius_fraction`` of
-    the micro-image's half pitch from its centre (there the defocus blur is
-    the whole microlens aperture, not cut by the main-lens aperture).
-    """
-    xs: list[NDArray[np.float64]] = []
-    ys: list[NDArray[np.float64]] = []
-    labels: list[NDArray[np.int64]] = []
-    cap = opts.blur_radius_fraction * 0.5 * image_pitch_px
-    cx, cy = centre
-    for label, n in enumerate("ADBC"):
-        b = blocks[n]
-        rows = b.rows
-        assert rows is not None
-        along, _, _, _, ratio = per[n]
-        intercept, slope, ref, corner_along = lines[n]
-        edge = intercept + slope * (along - ref)
-        k = profiles.shape[1]
-        across = b.start[:, None] + np.arange(k)[None, :]
-        if n in "AD":  # row profiles: across is x, along is y
-            r2 = (across - cx) ** 2 + (along[:, None] - cy) ** 2
-        else:
-            r2 = (along[:, None] - cx) ** 2 + (across - cy) ** 2
-        keep = (
-            fits.ok[rows]
-            & (ratio >= opts.blur_resolved_contrast)
-            & (np.abs(along - corner_along) >= opts.blur_clearance_px)
-            & (r2.max(axis=1) <= cap * cap)
-        )
-        if not keep.any():
-            continue
-        sign = np.sign(np.median(fits.contrast[rows][keep]))
-        xs.append(sign * (across[keep] - edge[keep, None]))
-        ys.append(profiles[rows][keep].astype(np.float64))
-        labels.append(np.full(int(keep.sum()), label, dtype=np.int64))
-    if not xs:
-        return EdgeProfiles(np.empty((0, 0)), np.empty((0, 0)), np.empty(0, dtype=np.int64))
-    return EdgeProfiles(np.concatenate(xs), np.concatenate(ys), np.concatenate(labels))

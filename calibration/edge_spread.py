@@ -2,20 +2,31 @@
 
 Every well-resolved edge profile of a corner's micro-images (ESIF step 3) is a
 sampled blurred step. Its samples are placed at their signed distance ``x``
-from the edge (pixels; ``x < 0`` on the dark side), the edge position taken
-from the block's straight-line fit (so the phase of each profile is known to
-a few thousandths of a pixel), and normalised to the unit step:
+from the edge (pixels; ``x < 0`` on the dark side) and normalised to the unit
+step with levels read off its flat tails only:
 
-    y = (1 + γ_k·x)·(B_p + C_p·E(x))
+    y = (1 + γ_k·x)·(B_p + C_p·H(x))   for |x| ≥ x_flat,
 
 ``B_p``, ``C_p``: dark level and contrast of profile ``p``; ``γ_k``: the
 relative drift of both levels across the edge in block ``k`` (vignetting and
 cos⁴ make the brightness change across a micro-image, and the change
-multiplies dark and light alike).
-``E`` is the frame's own edge-spread function, estimated from the data
-(starting from the blurred-step fits and refined twice), so no blur shape is
-imposed here. Pooling the profiles of every micro-image with their different
-sub-pixel phases samples ``E`` far below the pixel: the result is binned in
+multiplies dark and light alike); ``x_flat``: beyond the blur
+(:func:`flat_distance`). The samples nearer the edge are then
+``E(x) = (y/(1 + γ_k·x) - B_p)/C_p`` with no shape imposed: a template fitted
+to the whole profile would pull each profile's levels toward the template
+wherever the two differ near the edge, a bias that depends on the sampling
+phase (it cost χ² ≈ 25 on point-sampled pixels).
+
+Where the edge is (the origin of ``x``) comes from the frame's corner lattice,
+not from each micro-image's own edge fit (:func:`calibration.frame_analysis`):
+a sharp edge sampled by few points per pixel only locates to the sample
+spacing in one micro-image, and the lattice ``s = (1+Q)·m + c`` averages that
+over every micro-image of the corner. The lattice's own prediction error
+is carried as ``jitter_px``: the function this module returns is the edge
+spread convolved with that placement error, which the defocus model includes.
+
+Pooling the profiles of every micro-image with their different sub-pixel
+phases samples ``E`` far below the pixel: the result is binned in
 ``ESF_BIN_PX`` bins (mean position, weighted mean value and its standard
 error per bin), a few hundred numbers per corner and frame, which is what the
 whole-sweep defocus model (:mod:`calibration.defocus`) fits.
@@ -27,13 +38,12 @@ diffraction, sensor) and the geometric defocus disk of OPTICS.md §1.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
 ESF_HALF_PX = 6.0
 """Half width of the binned edge-spread function (pixels)."""
@@ -41,11 +51,20 @@ ESF_HALF_PX = 6.0
 ESF_BIN_PX = 0.1
 """Bin width of the binned edge-spread function (pixels)."""
 
-MAX_SHIFT_PX = 0.3
-"""Largest shift of a block's edge position when aligning it to the frame's function (px)."""
-
 MIN_PROFILES = 8
 """Fewest profiles for an edge-spread function of one corner in one frame."""
+
+FLAT_SIGMAS = 4.0
+"""The tails start this many sigmas of the edge's blur (pixel included) from the edge, plus
+``FLAT_MARGIN_PX``: a blur that is not Gaussian (a defocus box) reaches farther than three
+of its sigmas."""
+
+FLAT_MARGIN_PX = 0.25
+"""Added to the tails' distance from the edge (px): half a sample of point-sampled pixels."""
+
+FLAT_RANGE_PX = (2.0, 4.0)
+"""Bounds of the tails' distance from the edge (px): at least 2 samples each side remain of
+a profile of ±6 px."""
 
 
 @dataclass
@@ -66,11 +85,15 @@ class EdgeProfiles:
         return int(self.x.shape[0])
 
     @staticmethod
+    def empty() -> EdgeProfiles:
+        return EdgeProfiles(np.empty((0, 0)), np.empty((0, 0)), np.empty(0, dtype=np.int64))
+
+    @staticmethod
     def concatenate(parts: Sequence[EdgeProfiles]) -> EdgeProfiles:
         """One set from many (block labels kept distinct)."""
         parts = [p for p in parts if p.count]
         if not parts:
-            return EdgeProfiles(np.empty((0, 0)), np.empty((0, 0)), np.empty(0, dtype=np.int64))
+            return EdgeProfiles.empty()
         widths = {p.x.shape[1] for p in parts}
         if len(widths) != 1:
             raise ValueError(f"profiles of different lengths {sorted(widths)} cannot be pooled")
@@ -94,6 +117,8 @@ class BinnedEsf:
     (pixels from the edge), ``value`` their weighted mean (0 dark, 1 light),
     ``se`` its standard error, ``count`` the number of samples. Bins without
     samples are dropped. ``profiles``: how many profiles were pooled.
+    ``jitter_px``: RMS error of the edge positions the samples were placed
+    against (pixels): the function is the edge spread convolved with it.
     """
 
     x: NDArray[np.float64]
@@ -102,6 +127,7 @@ class BinnedEsf:
     count: NDArray[np.int64]
     profiles: int
     x_sd: NDArray[np.float64] | None = None
+    jitter_px: float = 0.0
 
     @property
     def position_sd_px(self) -> NDArray[np.float64]:
@@ -123,6 +149,7 @@ class BinnedEsf:
             "se": np.round(self.se, 7).tolist(),
             "count": self.count.tolist(),
             "profiles": self.profiles,
+            "jitter_px": round(float(self.jitter_px), 5),
         }
 
     @classmethod
@@ -135,11 +162,13 @@ class BinnedEsf:
             np.asarray(data["count"], dtype=np.int64),
             int(data["profiles"]),
             None if sd is None else np.asarray(sd, dtype=np.float64),
+            float(data.get("jitter_px") or 0.0),
         )
 
     @staticmethod
     def merge(parts: Sequence[BinnedEsf]) -> BinnedEsf:
-        """Inverse-variance weighted mean of functions binned on the same bins."""
+        """Inverse-variance weighted mean of functions binned on the same bins (their
+        jitter variances averaged with the profile counts as weights)."""
         n_bins = int(round(2 * ESF_HALF_PX / ESF_BIN_PX))
         sw = np.zeros(n_bins)
         swx = np.zeros(n_bins)
@@ -156,6 +185,8 @@ class BinnedEsf:
             np.add.at(count, b, p.count)
         keep = sw > 0
         mean = swx[keep] / sw[keep]
+        n_prof = np.array([p.profiles for p in parts], dtype=np.float64)
+        jitter2 = np.array([p.jitter_px**2 for p in parts], dtype=np.float64)
         return BinnedEsf(
             mean,
             swv[keep] / sw[keep],
@@ -163,7 +194,29 @@ class BinnedEsf:
             count[keep],
             sum(p.profiles for p in parts),
             np.sqrt(np.maximum(swxx[keep] / sw[keep] - mean**2, 0.0)),
+            float(np.sqrt(np.sum(n_prof * jitter2) / max(float(np.sum(n_prof)), 1.0))),
         )
+
+    def centre_px(self, *, half_window_px: float = 3.0) -> float:
+        """Centroid of the line-spread function within ``±half_window_px`` (pixels).
+
+        ``∫x·E'(x)dx = [x·E] - ∫E dx`` over the window (trapezoids on the bins): for a
+        symmetric blur the edge itself, so it is where the function is centred. NaN
+        when too few bins lie in the window.
+        """
+        inside = np.abs(self.x) <= half_window_px
+        if inside.sum() < 10:
+            return float("nan")
+        x, e = self.x[inside], self.value[inside]
+        area = float(np.sum(0.5 * (e[1:] + e[:-1]) * np.diff(x)))
+        rise = float(e[-1] - e[0])
+        if rise <= 0:
+            return float("nan")
+        return (float(x[-1] * e[-1] - x[0] * e[0]) - area) / rise
+
+    def shifted(self, shift_px: float) -> BinnedEsf:
+        """The same function with its positions moved by ``shift_px``."""
+        return replace(self, x=self.x + shift_px)
 
     def spread_px(self, *, half_window_px: float = 3.0) -> float:
         """RMS width of the line-spread function within ``±half_window_px`` (pixels).
@@ -183,119 +236,67 @@ class BinnedEsf:
         return float(np.sqrt(var)) if var > 0 else 0.0
 
 
-def _gaussian_step(width_px: float) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-    """Pixel-integrated Gaussian step of sigma ``width_px``: the starting shape."""
-    sigma = float(np.sqrt(max(width_px, 0.05) ** 2 + 1.0 / 12.0))
-    return lambda x: ndtr(x / sigma)
+def flat_distance(width_px: float) -> float:
+    """Distance from the edge (px) beyond which a profile is taken as flat.
+
+    ``width_px``: the blurred-step width (Gaussian sigma before pixel integration,
+    :mod:`calibration.edge_fit`) of the frame's edges; ``FLAT_SIGMAS`` of the edge's
+    whole sigma (the pixel's ``1/√12`` added) plus ``FLAT_MARGIN_PX``, within
+    ``FLAT_RANGE_PX``.
+    """
+    lo, hi = FLAT_RANGE_PX
+    if not np.isfinite(width_px):
+        return hi
+    sigma = float(np.sqrt(width_px**2 + 1.0 / 12.0))
+    return float(np.clip(FLAT_SIGMAS * sigma + FLAT_MARGIN_PX, lo, hi))
 
 
-def _interpolator(
-    esf: BinnedEsf,
-) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-    """Linear interpolation of a binned function, clamped at its ends."""
-    x, v = esf.x, esf.value
-    return lambda q: np.interp(q, x, v)
+def _tail_normalise(
+    prof: EdgeProfiles, x_flat: float, *, iterations: int = 4
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(z, C)``: samples mapped to the unit step by levels read off the flat tails.
 
-
-def _normalise(
-    prof: EdgeProfiles,
-    esf: Callable[[NDArray[np.float64]], NDArray[np.float64]],
-    *,
-    iterations: int = 3,
-    align: bool = False,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """``(x, z, C, rms)``: sample positions and values mapped to the unit step.
-
-    Least squares of ``y = (1 + γ_k·x)·(B_p + C_p·E(x - δ_k))`` by
-    Gauss–Newton, the per-profile level ``B_p`` and contrast ``C_p``
-    eliminated in closed form (Schur complement), so each step solves a small
-    system per block ``k`` for its drift ``γ_k`` and, with ``align``, its
-    edge shift ``δ_k``. Aligning every block to ``E`` itself removes the
-    pixel-locking of the blurred-step fits (their positions depend on the
-    sampling phase when the edge is not Gaussian); the mean shift is held at
-    zero (a shift common to all blocks is a shift of ``E``'s origin) and each
-    shift is limited to ``MAX_SHIFT_PX``.
+    Least squares of ``y = (1 + γ_k·x)·(B_p + C_p·H(x))`` over the samples with
+    ``|x| ≥ x_flat``: for given drifts ``γ_k`` the levels of each profile are a
+    2×2 linear problem, solved in closed form and projected out (variable
+    projection), and each block's ``γ_k`` takes Gauss–Newton steps on what is
+    left. ``C`` is NaN for a profile with fewer than 2 tail samples on either side.
     """
     x, y, block = prof.x, prof.y, prof.block
     n_blocks = int(block.max()) + 1
-    grid = np.arange(-ESF_HALF_PX - 1.0, ESF_HALF_PX + 1.0, 0.02)
-    grid_slope = np.gradient(esf(grid), grid)
-
-    def slope_of(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.interp(q, grid, grid_slope)
-
+    light = x >= x_flat
+    dark = x <= -x_flat
+    tail = (light | dark).astype(np.float64)
+    step = light.astype(np.float64)
     gamma = np.zeros(n_blocks)
-    delta = np.zeros(n_blocks)
-    e = esf(x)
-    b, c = _levels(y, np.ones_like(x), e)
-    n_par = 2 if align else 1
+    b = c = np.zeros(prof.count)
     for _ in range(iterations):
-        xs = x - delta[block][:, None]
-        e = esf(xs)
         one = 1.0 + gamma[block][:, None] * x
-        level = b[:, None] + c[:, None] * e
-        r = y - one * level
-        col_b, col_c = one, one * e
-        extra = [x * level]
-        if align:
-            extra.append(-one * c[:, None] * slope_of(xs))
+        col_b, col_c = one * tail, one * step  # (the light tail is inside the tails)
         aa, ab, bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
         det = aa * bb - ab * ab
-        det = np.where(np.abs(det) > 1e-12 * aa * bb, det, np.nan)
-        rb, rc = _dot(r, col_b), _dot(r, col_c)
-        # per profile: the block columns projected off the (B, C) columns
-        gb = [_dot(g, col_b) for g in extra]
-        gc = [_dot(g, col_c) for g in extra]
-        pb = [(bb * gb[i] - ab * gc[i]) / det for i in range(n_par)]
-        pc = [(aa * gc[i] - ab * gb[i]) / det for i in range(n_par)]
-        schur = np.zeros((n_blocks, n_par, n_par))
-        rhs = np.zeros((n_blocks, n_par))
-        for i in range(n_par):
-            val = _dot(extra[i], r) - (pb[i] * rb + pc[i] * rc)
-            rhs[:, i] = np.bincount(block, np.nan_to_num(val), n_blocks)
-            for j in range(i, n_par):
-                val = _dot(extra[i], extra[j]) - (pb[i] * gb[j] + pc[i] * gc[j])
-                schur[:, i, j] = schur[:, j, i] = np.bincount(block, np.nan_to_num(val), n_blocks)
-        diag = np.einsum("kii->ki", schur)
-        diag *= 1.05  # a little Levenberg damping: a flat shift cost near focus stays tame
-        ok = np.all(diag > 0, axis=1)
-        step = np.zeros((n_blocks, n_par))
-        if ok.any():
-            step[ok] = np.linalg.solve(schur[ok], rhs[ok][:, :, None])[:, :, 0]
-        gamma = gamma + step[:, 0]
-        if align:
-            delta = np.clip(delta + step[:, 1], -MAX_SHIFT_PX, MAX_SHIFT_PX)
-            weight = np.where(ok, diag[:, 1], 0.0)
-            if weight.sum() > 0:
-                delta -= np.average(delta, weights=weight)
-        # profile levels follow the block parameters' step
-        dr_b = sum(step[:, i][block] * gb[i] for i in range(n_par))
-        dr_c = sum(step[:, i][block] * gc[i] for i in range(n_par))
-        rb2, rc2 = rb - dr_b, rc - dr_c
-        b = b + (bb * rb2 - ab * rc2) / det
-        c = c + (aa * rc2 - ab * rb2) / det
-    xs = x - delta[block][:, None]
+        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
+        yb, yc = _dot(y, col_b), _dot(y, col_c)
+        b = (bb * yb - ab * yc) / det
+        c = (aa * yc - ab * yb) / det
+        resid = (y - b[:, None] * one - c[:, None] * one * step) * tail
+        g = x * (b[:, None] + c[:, None] * step) * tail  # d model / d gamma
+        gb, gc = _dot(g, col_b), _dot(g, col_c)
+        pb = (bb * gb - ab * gc) / det
+        pc = (aa * gc - ab * gb) / det
+        g_perp = g - pb[:, None] * col_b - pc[:, None] * col_c
+        num = np.bincount(block, np.nan_to_num(_dot(g_perp, resid)), n_blocks)
+        den = np.bincount(block, np.nan_to_num(_dot(g_perp, g_perp)), n_blocks)
+        gamma = gamma + np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
     one = 1.0 + gamma[block][:, None] * x
-    z = (y / one - b[:, None]) / c[:, None]
-    rms = np.sqrt(np.mean((z - esf(xs)) ** 2, axis=1))
-    return xs, z, c, rms
+    z = (y / one - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
+    enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)
+    return z, np.where(enough, c, np.nan)
 
 
 def _dot(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
     """Row-wise dot products."""
     return np.einsum("pk,pk->p", u, v)
-
-
-def _levels(
-    y: NDArray[np.float64], a: NDArray[np.float64], e: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per row, least squares ``y ≈ B·a + C·a·E``: level and contrast."""
-    ca = a * e
-    aa, ab, bb = _dot(a, a), _dot(a, ca), _dot(ca, ca)
-    ya, yb = _dot(y, a), _dot(y, ca)
-    det = aa * bb - ab * ab
-    det = np.where(np.abs(det) > 1e-12 * aa * bb, det, np.nan)
-    return (bb * ya - ab * yb) / det, (aa * yb - ab * ya) / det
 
 
 def _bin(
@@ -330,31 +331,34 @@ def _bin(
     return BinnedEsf(mean_x, mean_z, se[keep], count[keep].astype(np.int64), n_profiles, x_sd)
 
 
-def frame_esf(prof: EdgeProfiles, *, start_width_px: float) -> BinnedEsf | None:
+def frame_esf(
+    prof: EdgeProfiles, *, start_width_px: float, jitter_px: float = 0.0
+) -> BinnedEsf | None:
     """The binned, normalised edge-spread function of pooled profiles (None if too few).
 
-    ``start_width_px`` is the blurred-step width (Gaussian sigma, pixels) the
-    iteration starts from. Profiles whose residual RMS is far above the
-    others' (a defect, a stray edge) are dropped.
+    ``start_width_px``: the frame's blurred-step width (Gaussian sigma, px),
+    which sets where the flat tails start (:func:`flat_distance`);
+    ``jitter_px``: the RMS error of the edge positions the profiles are placed
+    against, recorded with the function. Profiles whose scatter about the
+    pooled function is far above the others' (a defect, a stray edge) are
+    dropped.
     """
     if prof.count < MIN_PROFILES:
         return None
-    esf: Callable[[NDArray[np.float64]], NDArray[np.float64]] = _gaussian_step(start_width_px)
-    keep = np.ones(prof.count, dtype=bool)
-    binned: BinnedEsf | None = None
-    for round_ in range(2):
-        sub = EdgeProfiles(prof.x[keep], prof.y[keep], prof.block[keep])
-        xs, z, c, rms = _normalise(sub, esf, iterations=2 + round_, align=round_ > 0)
-        good = np.isfinite(c) & (c > 0) & np.isfinite(rms)
-        if good.sum() < MIN_PROFILES:
-            return None
-        med = float(np.median(rms[good]))
-        good &= rms <= 4.0 * med + 1e-9
-        weight = np.repeat(c * c, sub.x.shape[1]).reshape(sub.x.shape)
-        binned = _bin(xs[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
-        if binned.x.size < 10:
-            return None
-        esf = _interpolator(binned)
-        idx = np.flatnonzero(keep)
-        keep[idx[~good]] = False
-    return binned
+    z, c = _tail_normalise(prof, flat_distance(start_width_px))
+    good = np.isfinite(c) & (c > 0) & np.all(np.isfinite(z), axis=1)
+    if good.sum() < MIN_PROFILES:
+        return None
+    weight = np.repeat(c * c, prof.x.shape[1]).reshape(prof.x.shape)
+    binned = _bin(prof.x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
+    if binned.x.size < 10:
+        return None
+    rms = np.sqrt(np.mean((z - np.interp(prof.x, binned.x, binned.value)) ** 2, axis=1))
+    med = float(np.median(rms[good]))
+    good &= rms <= 4.0 * med + 1e-9
+    if good.sum() < MIN_PROFILES:
+        return None
+    binned = _bin(prof.x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
+    if binned.x.size < 10:
+        return None
+    return replace(binned, jitter_px=float(jitter_px))

@@ -31,7 +31,8 @@ from .corners import (
     find_junctions,
     measure_corners,
 )
-from .edge_spread import BinnedEsf, EdgeProfiles, frame_esf
+from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
+from .edge_spread import BinnedEsf, frame_esf
 from .lens_grid import LensGrid
 from .optics import image_distance
 
@@ -69,6 +70,7 @@ class CornerFit:
     size_px: float = float("nan")
     edge_width_px: float = float("nan")
     esf: BinnedEsf | None = None
+    lattice: CornerLattice | None = None
     note: str = ""
 
     @property
@@ -212,10 +214,39 @@ def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
     fit.size_px = float(np.nanmean(sizes)) if np.isfinite(sizes).any() else float("nan")
     fit.edge_width_px = float(np.mean([m.edge_width_px for m in used]))
     fit.Q_eq3 = _eq3(used, ctx)
-    profiles = EdgeProfiles.concatenate(
-        [m.edge_profiles for m in used if m.edge_profiles is not None]
+    fit.lattice = _corner_lattice(
+        used,
+        np.asarray(coef, dtype=np.float64),
+        np.asarray(cov, dtype=np.float64),
+        gap=fit.name == "reference",
     )
-    fit.esf = frame_esf(profiles, start_width_px=fit.edge_width_px)
+
+
+def _corner_lattice(
+    used: list[CornerMeasurement],
+    coef: NDArray[np.float64],
+    cov: NDArray[np.float64],
+    *,
+    gap: bool,
+) -> CornerLattice:
+    """The corner's lattice ``s = (1+Q)·m + c`` with its covariance, the median slopes of
+    its edges and, for the reference corner, the mean offset of the halves of each edge
+    (its gap ``Cr`` imaged) with that mean's variance; the standard corner's halves meet."""
+    slopes = np.array([m.slopes for m in used], dtype=np.float64)
+    halves = np.array([m.half_offset_px for m in used], dtype=np.float64)
+    if gap and len(used) >= 2:
+        half = tuple(float(v) for v in halves.mean(axis=0))
+        half_var = tuple(float(v) for v in halves.var(axis=0, ddof=1) / len(used))
+    else:
+        half, half_var = (0.0, 0.0), (0.0, 0.0)
+    return CornerLattice(
+        coef=(float(coef[0]), float(coef[1]), float(coef[2])),
+        covariance=np.asarray(cov, dtype=np.float64),
+        slope_v=float(np.median(slopes[:, 0])),
+        slope_h=float(np.median(slopes[:, 1])),
+        half_px=half,  # type: ignore[arg-type]
+        half_var_px2=half_var,  # type: ignore[arg-type]
+    )
 
 
 def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:
@@ -311,4 +342,46 @@ def analyze_frame(
         fit = CornerFit(name, members, np.zeros(len(members), dtype=bool))
         _fit_disparity(fit, ctx)
         setattr(result, name, fit)
+    scale = _board_scale_px_per_mm(result, ctx, object_distance_mm)
+    for found in (result.standard, result.reference):
+        if found is not None and found.lattice is not None and np.isfinite(found.Q):
+            found.esf = _edge_spread(frame, found, ctx, float(found.Q) * scale)
     return result
+
+
+REACH_FRACTION = 0.8
+"""Profiles are cut along a half-edge up to this fraction of a board square from its
+corner: short of the next corner of the board."""
+
+
+def _board_scale_px_per_mm(
+    result: FrameResult, ctx: FrameContext, object_distance_mm: float
+) -> float:
+    """Main-image pixels per board millimetre, ``M/δ``: from the two corners' main images
+    (``2s`` apart on the board) when both were found, else from the data-sheet focal length."""
+    std, ref = result.standard, result.reference
+    if std is not None and ref is not None and np.isfinite(std.Q) and np.isfinite(ref.Q):
+        dist = float(np.hypot(*np.subtract(ref.main_image_px, std.main_image_px)))
+        if np.isfinite(dist) and dist > 0:
+            return dist / (2.0 * ctx.board.square_mm)
+    v = float(image_distance(object_distance_mm, ctx.main_focal_mm))
+    return v / object_distance_mm / ctx.pixel_pitch_mm
+
+
+def _edge_spread(
+    frame: NDArray[np.integer] | NDArray[np.floating],
+    fit: CornerFit,
+    ctx: FrameContext,
+    px_per_board_mm: float,
+) -> BinnedEsf | None:
+    """The corner's edge-spread function from every micro-image that shows its half-edges."""
+    opts = ctx.options
+    window = ProfileWindow(
+        plateau_px=opts.blur_radius_fraction * 0.5 * ctx.image_grid.pitch_px,
+        clearance_px=opts.blur_clearance_px,
+        reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
+        half_px=opts.profile_half_px,
+    )
+    assert fit.lattice is not None
+    profiles, jitter = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
+    return frame_esf(profiles, start_width_px=fit.edge_width_px, jitter_px=jitter)

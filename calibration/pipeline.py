@@ -101,6 +101,13 @@ class FrameAnalyzer:
             principal_point_px=geometry.principal_point_px,
         )
         shading = measure_shading(white, grid.image_grid, background=grid.background)
+        options = options or CalibrationOptions()
+        if np.isfinite(shading.plateau_fraction):
+            # edge spreads only where the whole microlens aperture is seen (the white plateau)
+            corner = dataclasses.replace(
+                options.corner, blur_radius_fraction=shading.plateau_fraction
+            )
+            options = dataclasses.replace(options, corner=corner)
         return cls(geometry, dataclasses.replace(grid, shading=shading), options)
 
     def __getstate__(self) -> dict[str, Any]:

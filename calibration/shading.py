@@ -23,6 +23,15 @@ here: ``c`` is the curvature of ``log W`` inside the fully lit interior of the
 micro-images, one value for the sensor, fitted with a free level and
 gradient per micro-image (the gradient absorbs the tilt of off-axis
 micro-images).
+
+The same white image says where that interior ends (:func:`measure_plateau`):
+a pixel sees its whole microlens aperture only while the aperture's footprint on
+the main lens fits inside the main aperture; beyond that radius the white image
+falls off, and a defocused edge there is blurred by a clipped aperture (a
+smaller, lopsided kernel). For f-number-matched optics that radius is about
+``1 - √2·(Q0 - b/L)`` of the half pitch for square lenses, 0.6-0.8 for the
+cameras of the benchmarks; the edge spread (:mod:`calibration.edge_spread`)
+uses only profiles inside it.
 """
 
 from __future__ import annotations
@@ -41,6 +50,21 @@ INTERIOR_FRACTION = 0.6
 MAX_MICRO_IMAGES = 600
 """At most this many micro-images (evenly spread over the sensor) are measured."""
 
+PLATEAU_INNER_FRACTION = 0.45
+"""The part of a micro-image (fraction of half its pitch) taken as lit for certain: the
+smooth shading fitted there is extrapolated outwards to find where the plateau ends."""
+
+PLATEAU_MAX_FRACTION = 0.95
+"""The plateau is searched out to this fraction of half the micro-image pitch."""
+
+PLATEAU_TOLERANCE = 1e-3
+"""The plateau ends where the white image falls this far (relative) below its smooth
+shading: an aperture clipped by 0.1 % changes a defocus kernel's variance by ~0.3 %
+in the few profiles that reach there."""
+
+PLATEAU_BIN_PX = 0.5
+"""Radial bin of the plateau search (pixels)."""
+
 
 @dataclass(frozen=True)
 class WhiteShading:
@@ -49,6 +73,9 @@ class WhiteShading:
     curvature_px2: float
     curvature_se_px2: float
     micro_images: int
+    plateau_fraction: float = float("nan")
+    """Radius of the fully lit interior, fraction of half the micro-image pitch (NaN: not
+    measured)."""
 
     def bias_coefficient(self, aperture_variance_px2: float) -> float:
         """``η = Var(p)·c``: the disparity reads ``Q·(1 + η·(Q - Q0))``."""
@@ -59,41 +86,27 @@ class WhiteShading:
             "curvature_px2": self.curvature_px2,
             "curvature_se_px2": self.curvature_se_px2,
             "micro_images": self.micro_images,
+            "plateau_fraction": self.plateau_fraction,
         }
 
 
 def measure_shading(
     white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0
 ) -> WhiteShading:
-    """The curvature of ``log W`` inside the micro-images of a white image.
+    """The curvature of ``log W`` inside the micro-images of a white image, and the radius
+    of their fully lit plateau.
 
     ``image_grid`` is the fitted micro-image lattice (pixels);
-    ``background`` the dark level to subtract (counts).
+    ``background`` the dark level to subtract (counts). The curvature is fitted
+    inside ``INTERIOR_FRACTION`` of the half pitch, or inside the plateau when
+    that ends sooner.
     """
-    img = np.asarray(white, dtype=np.float64) - background
-    h, w = img.shape
-    pitch = image_grid.pitch_px
-    radius = INTERIOR_FRACTION * 0.5 * pitch
-    ii, jj = image_grid.indices_in(w, h, margin_px=radius + 1)
-    if ii.size == 0:
-        return WhiteShading(float("nan"), float("nan"), 0)
-    keep = np.linspace(0, ii.size - 1, min(MAX_MICRO_IMAGES, ii.size)).astype(np.int64)
-    ii, jj = ii[keep], jj[keep]
-    cx, cy = image_grid.centre(ii, jj)
-    r = int(np.ceil(radius))
-    oy, ox = np.mgrid[-r : r + 1, -r : r + 1]
-    # per micro-image: pixels of its interior disc about its (sub-pixel) centre
-    x0 = np.rint(cx).astype(np.int64)
-    y0 = np.rint(cy).astype(np.int64)
-    xs = x0[:, None, None] + ox[None]
-    ys = y0[:, None, None] + oy[None]
-    dx = xs - cx[:, None, None]
-    dy = ys - cy[:, None, None]
-    inside = (dx * dx + dy * dy) <= radius * radius
-    values = img[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
-    level = np.nanmedian(np.where(inside, values, np.nan).reshape(ii.size, -1), axis=1)
-    lit = level > 0.2 * np.nanmax(level)
-    good = inside & (values > 0.3 * level[:, None, None]) & lit[:, None, None]
+    plateau = measure_plateau(white, image_grid, background=background)
+    fraction = INTERIOR_FRACTION if not np.isfinite(plateau) else min(INTERIOR_FRACTION, plateau)
+    samples = _samples(white, image_grid, background, fraction)
+    if samples is None:
+        return WhiteShading(float("nan"), float("nan"), 0, plateau)
+    dx, dy, values, good, n_images = samples
     logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
     # fixed effects: regress out a level and a gradient per micro-image, then one curvature
     rr = dx * dx + dy * dy
@@ -102,15 +115,99 @@ def measure_shading(
     x = _residual_after(rr, regs, good)
     sxx = float(np.sum(np.where(good, x * x, 0.0)))
     if sxx <= 0:
-        return WhiteShading(float("nan"), float("nan"), 0)
+        return WhiteShading(float("nan"), float("nan"), 0, plateau)
     slope = float(np.sum(np.where(good, x * y, 0.0)) / sxx)
     resid = np.where(good, y - slope * x, 0.0)
     n = int(good.sum())
-    dof = max(1, n - 3 * ii.size - 1)
+    dof = max(1, n - 3 * n_images - 1)
     sigma2 = float(np.sum(resid * resid) / dof)
     # pixels of one micro-image share its noise only through the fitted level: independent
     se = float(np.sqrt(sigma2 / sxx))
-    return WhiteShading(curvature_px2=-2.0 * slope, curvature_se_px2=2.0 * se, micro_images=ii.size)
+    return WhiteShading(
+        curvature_px2=-2.0 * slope,
+        curvature_se_px2=2.0 * se,
+        micro_images=n_images,
+        plateau_fraction=plateau,
+    )
+
+
+def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0) -> float:
+    """Radius where the micro-images of a white image stop being fully lit (fraction of
+    half the micro-image pitch; NaN when it cannot be measured).
+
+    Each micro-image's ``log W`` is fitted with a level, a gradient and a
+    curvature inside ``PLATEAU_INNER_FRACTION``; the ratio of the image to that
+    smooth shading, averaged over the micro-images in radial bins of
+    ``PLATEAU_BIN_PX``, stays at 1 on the plateau. The plateau ends at the
+    inner edge of the first bin whose mean falls more than ``PLATEAU_TOLERANCE``
+    (or three of its standard errors, in a noisy white image) below 1;
+    ``PLATEAU_MAX_FRACTION`` when none does.
+    """
+    samples = _samples(white, image_grid, background, PLATEAU_MAX_FRACTION)
+    if samples is None:
+        return float("nan")
+    dx, dy, values, good, _ = samples
+    half = 0.5 * image_grid.pitch_px
+    rr = dx * dx + dy * dy
+    inner = good & (rr <= (PLATEAU_INNER_FRACTION * half) ** 2)
+    logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
+    regs = [np.ones_like(dx), dx, dy, rr]
+    n = values.shape[0]
+    a = np.stack([np.where(inner, r, 0.0).reshape(n, -1) for r in regs], axis=2)
+    v = np.where(inner, logv, 0.0).reshape(n, -1)
+    ata = np.einsum("npk,npl->nkl", a, a) + 1e-12 * np.eye(len(regs))[None]
+    coef = np.linalg.solve(ata, np.einsum("npk,np->nk", a, v)[:, :, None])[:, :, 0]
+    full = np.stack([r.reshape(n, -1) for r in regs], axis=2)
+    ratio = np.exp(logv.reshape(n, -1) - np.einsum("npk,nk->np", full, coef))
+    radius = np.sqrt(rr).reshape(n, -1)
+    use = good.reshape(n, -1)
+    edges = np.arange(PLATEAU_INNER_FRACTION * half, PLATEAU_MAX_FRACTION * half, PLATEAU_BIN_PX)
+    which = np.digitize(radius[use], edges) - 1
+    vals = ratio[use]
+    for b in range(edges.size - 1):
+        in_bin = vals[which == b]
+        if in_bin.size < 10:
+            continue
+        se = float(np.std(in_bin) / np.sqrt(in_bin.size))
+        if float(np.mean(in_bin)) < 1.0 - max(PLATEAU_TOLERANCE, 3.0 * se):
+            return float(edges[b] / half)
+    return PLATEAU_MAX_FRACTION
+
+
+def _samples(
+    white: NDArray[Any], image_grid: LensGrid, background: float, fraction: float
+) -> (
+    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], int]
+    | None
+):
+    """Pixels within ``fraction`` of half the pitch of up to ``MAX_MICRO_IMAGES`` lit
+    micro-images: offsets from their centres, values, the usable mask, the count."""
+    img = np.asarray(white, dtype=np.float64) - background
+    h, w = img.shape
+    pitch = image_grid.pitch_px
+    radius = fraction * 0.5 * pitch
+    ii, jj = image_grid.indices_in(w, h, margin_px=radius + 1)
+    if ii.size == 0:
+        return None
+    keep = np.linspace(0, ii.size - 1, min(MAX_MICRO_IMAGES, ii.size)).astype(np.int64)
+    ii, jj = ii[keep], jj[keep]
+    cx, cy = image_grid.centre(ii, jj)
+    r = int(np.ceil(radius))
+    oy, ox = np.mgrid[-r : r + 1, -r : r + 1]
+    # per micro-image: pixels of its disc about its (sub-pixel) centre
+    x0 = np.rint(cx).astype(np.int64)
+    y0 = np.rint(cy).astype(np.int64)
+    xs = x0[:, None, None] + ox[None]
+    ys = y0[:, None, None] + oy[None]
+    dx = xs - cx[:, None, None]
+    dy = ys - cy[:, None, None]
+    inside = (dx * dx + dy * dy) <= radius * radius
+    values = img[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
+    core = inside & ((dx * dx + dy * dy) <= (0.3 * pitch) ** 2)
+    level = np.nanmedian(np.where(core, values, np.nan).reshape(ii.size, -1), axis=1)
+    lit = level > 0.2 * np.nanmax(level)
+    good = inside & (values > 0.3 * level[:, None, None]) & lit[:, None, None]
+    return dx, dy, values, good, int(ii.size)
 
 
 def _residual_after(

@@ -1,0 +1,220 @@
+"""Edge profiles of a board corner's four half-edges, in every micro-image that shows them.
+
+A corner's disparity fit (:mod:`calibration.frame_analysis`) gives its lattice:
+in the micro-image of lens ``m`` the corner is imaged at ``s = (1+Q)·m + c``
+(OPTICS.md §1, sensor pixels), whether or not that point lies inside the
+micro-image. The board's edges through the corner are straight lines through
+that point, so the lattice predicts where every micro-image shows them: the
+vertical edge (board ``X`` constant) at ``x = s_x + slope·(y - s_y)``, the
+horizontal one at ``y = s_y + slope·(x - s_x)``, the two halves of each apart by
+the reference corner's gap (``±Cr/2`` imaged; none for the standard corner).
+
+This module cuts a profile of ``2·h + 1`` samples across an edge at every
+pixel row (vertical edge) or column (horizontal edge) of every micro-image
+where the whole profile lies in the fully lit plateau (:mod:`calibration.shading`,
+where the defocus kernel is the whole microlens aperture), at least a clearance
+from the corner (the other edge does not reach into it) and no farther along
+the edge than ``reach`` (short of the next corner of the board). That is many
+more micro-images than those in which the corner itself can be measured: the
+half-edges run on through the micro-images next to them.
+
+Samples are placed at their signed distance from the predicted edge (dark
+side negative). Placing them by the lattice, not by a fit in each micro-image,
+matters when edges are sharp and sampled by few points per pixel: one
+micro-image then locates its edge only to the sample spacing (it locks to the
+pixel grid), the lattice averages that over every micro-image of the corner.
+The prediction's error, from the fit's covariance, is returned as the RMS
+placement jitter the defocus model convolves with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .edge_spread import EdgeProfiles
+from .lens_grid import LensGrid
+
+
+@dataclass(frozen=True)
+class CornerLattice:
+    """A corner's images ``s = (1+Q)·m + c`` in sensor pixels, and its edges' geometry.
+
+    ``coef``: ``(1+Q, c_x, c_y)``; ``covariance``: their 3×3 covariance (at the
+    fit's residual scatter); ``slope_v``: ``dx/dy`` of the vertical edge,
+    ``slope_h``: ``dy/dx`` of the horizontal edge (a board turned about the
+    axis); ``half_px``: half the offset between the two halves of each edge
+    ``(x_A - x_D, y_B - y_C)/2`` and ``half_var_px2`` its variance.
+    """
+
+    coef: tuple[float, float, float]
+    covariance: NDArray[np.float64]
+    slope_v: float = 0.0
+    slope_h: float = 0.0
+    half_px: tuple[float, float] = (0.0, 0.0)
+    half_var_px2: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ProfileWindow:
+    """Where profiles may be cut (pixels): ``plateau_px`` the radius of each
+    micro-image's fully lit interior, ``clearance_px`` the least distance from
+    the corner along the edge, ``reach_px`` the largest, ``half_px`` the
+    profile's half length (``2·half_px + 1`` samples)."""
+
+    plateau_px: float
+    clearance_px: float
+    reach_px: float
+    half_px: int = 6
+
+
+def half_edge_profiles(
+    image: NDArray[np.floating] | NDArray[np.integer],
+    lattice: CornerLattice,
+    lens_grid: LensGrid,
+    image_grid: LensGrid,
+    window: ProfileWindow,
+) -> tuple[EdgeProfiles, float]:
+    """Every clean profile across the corner's four half-edges, and the placement jitter (px).
+
+    Block labels: one per micro-image and half-edge (A above the corner, D
+    below, on the vertical edge; B left, C right, on the horizontal edge).
+    """
+    height, width = image.shape
+    radius = window.plateau_px
+    ii, jj = image_grid.indices_in(width, height, margin_px=radius + 1.0)
+    if ii.size == 0:
+        return EdgeProfiles.empty(), 0.0
+    mx, my = lens_grid.centre(ii, jj)
+    cx, cy = image_grid.centre(ii, jj)
+    a, ox, oy = lattice.coef
+    sx, sy = a * mx + ox, a * my + oy  # the corner's image in each micro-image
+    # the placement error of a profile is linear in the lattice's errors and the halves'
+    # gap: parameters (1+Q, c_x, c_y, half_x, half_y) with this covariance
+    sigma = np.zeros((5, 5))
+    sigma[:3, :3] = lattice.covariance
+    sigma[3, 3], sigma[4, 4] = lattice.half_var_px2
+    parts = []
+    gradients = []
+    for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
+        if axis == 0:
+            cut = _cut(image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False)
+        else:
+            cut = _cut(image, cy, cx, sy, sx, lattice.slope_h, lattice.half_px[1], window, True)
+        if cut is None:
+            continue
+        x, y, lens, half, sign = cut
+        parts.append((x, y, lens * 4 + 2 * axis + half))
+        # d(sample position)/d(parameters): x = sign·(column - edge), the edge moving with
+        # m·δ(1+Q) + δc and by +δhalf before the corner, -δhalf after it
+        grad = np.zeros((lens.size, 5))
+        grad[:, 0] = mx[lens] if axis == 0 else my[lens]
+        grad[:, 1 + axis] = 1.0
+        grad[:, 3 + axis] = np.where(half == 1, -1.0, 1.0)
+        gradients.append(-sign[:, None] * grad)
+    if not parts:
+        return EdgeProfiles.empty(), 0.0
+    x = np.concatenate([p[0] for p in parts])
+    y = np.concatenate([p[1] for p in parts])
+    label = np.concatenate([p[2] for p in parts])
+    _, block = np.unique(label, return_inverse=True)
+    return EdgeProfiles(x, y, block.astype(np.int64)), _placement_jitter(
+        np.concatenate(gradients), sigma
+    )
+
+
+def _placement_jitter(gradients: NDArray[np.float64], sigma: NDArray[np.float64]) -> float:
+    """RMS spread of the profiles' placement errors about their common shift (px).
+
+    With errors ``e_p = g_p·δ``, ``δ ~ N(0, Σ)``, the pooled function is blurred by
+    ``mean_p e_p² - (mean_p e_p)²`` in expectation; the common shift ``mean_p e_p``
+    moves the function as a whole, which the defocus model fits per observation.
+    """
+    mean_sq = float(np.mean(np.einsum("pi,ij,pj->p", gradients, sigma, gradients)))
+    g_bar = gradients.mean(axis=0)
+    return float(np.sqrt(max(mean_sq - float(g_bar @ sigma @ g_bar), 0.0)))
+
+
+def _cut(
+    image: NDArray[np.floating] | NDArray[np.integer],
+    centre_across: NDArray[np.float64],
+    centre_along: NDArray[np.float64],
+    corner_across: NDArray[np.float64],
+    corner_along: NDArray[np.float64],
+    slope: float,
+    half_offset: float,
+    window: ProfileWindow,
+    transposed: bool,
+) -> (
+    tuple[
+        NDArray[np.float64],
+        NDArray[np.float64],
+        NDArray[np.int64],
+        NDArray[np.int64],
+        NDArray[np.float64],
+    ]
+    | None
+):
+    """Profiles across one edge of every micro-image (coordinates named across/along the edge).
+
+    For the vertical edge ``across`` is x and ``along`` is y (row profiles);
+    ``transposed`` swaps them for the horizontal edge. Returns the samples'
+    signed distances from the edge, their values, the micro-image (index into
+    the inputs), the half (0 before the corner along the edge, 1 after) and the
+    sign that made the dark side negative.
+    """
+    height, width = image.shape
+    r = window.plateau_px
+    h = window.half_px
+    offsets = np.arange(-h, h + 1, dtype=np.float64)
+    span = int(np.ceil(r))
+    steps = np.arange(-span, span + 1, dtype=np.float64)
+    # candidate lines (along coordinate) of every micro-image
+    along = np.rint(centre_along)[:, None] + steps[None, :]
+    dist = along - corner_along[:, None]
+    after = (dist > 0).astype(np.int64)
+    # the two halves of the edge are offset by the gap: +half before the corner, -half after
+    edge = corner_across[:, None] + slope * dist + np.where(after == 1, -half_offset, half_offset)
+    start = np.rint(edge) - h
+    lo, hi = start - centre_across[:, None], start + 2 * h - centre_across[:, None]
+    dy = along - centre_along[:, None]
+    far = np.maximum(lo * lo, hi * hi) + dy * dy
+    limit_across = width if not transposed else height
+    limit_along = height if not transposed else width
+    keep = (
+        (far <= r * r)
+        & (np.abs(dist) >= window.clearance_px)
+        & (np.abs(dist) <= window.reach_px)
+        & (start >= 0)
+        & (start + 2 * h <= limit_across - 1)
+        & (along >= 0)
+        & (along <= limit_along - 1)
+    )
+    lens, line = np.nonzero(keep)
+    if lens.size == 0:
+        return None
+    across_idx = (start[lens, line][:, None] + h + offsets[None, :]).astype(np.int64)
+    along_idx = np.broadcast_to(along[lens, line][:, None], across_idx.shape).astype(np.int64)
+    if transposed:
+        values = image[across_idx, along_idx]
+    else:
+        values = image[along_idx, across_idx]
+    x = across_idx - edge[lens, line][:, None]
+    values = np.asarray(values, dtype=np.float64)
+    lens = lens.astype(np.int64)
+    # dark side negative: the sign of each half-edge from its profiles' ends
+    half = after[lens, line]
+    key = lens * 2 + half
+    rise = values[:, -3:].mean(axis=1) - values[:, :3].mean(axis=1)
+    _, group = np.unique(key, return_inverse=True)
+    total = np.bincount(group, rise)
+    sign = np.where(total[group] >= 0, 1.0, -1.0)
+    return (
+        np.asarray(sign[:, None] * x, dtype=np.float64),
+        values,
+        lens,
+        np.asarray(half, dtype=np.int64),
+        np.asarray(sign, dtype=np.float64),
+    )
