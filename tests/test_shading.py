@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from calibration.lens_grid import LensGrid
-from calibration.shading import measure_shading
+from calibration.shading import measure_plateau, measure_shading
 
 PITCH_PX = 60.0
 SCALE = 1.05  # micro-image centres lie (L+b)/L farther from the principal point
@@ -61,3 +61,22 @@ def test_a_dark_frame_gives_no_measurement() -> None:
     _, image = _white(0.0)
     found = measure_shading(np.zeros((600, 900)), image)
     assert found.micro_images == 0 or not np.isfinite(found.curvature_px2)
+
+
+@pytest.mark.parametrize("plateau", [0.55, 0.7])
+def test_the_fully_lit_plateau_ends_where_the_white_image_falls_off(plateau: float) -> None:
+    """Beyond the plateau the microlens aperture is clipped by the main aperture and the
+    white image falls (here linearly to the rim); the shading inside must not be taken for it."""
+    white, image = _white(3e-6, seed=2)
+    h, w = white.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    i, j = image.nearest(xs, ys)
+    cx, cy = image.centre(i, j)
+    half = 0.5 * image.pitch_px
+    r = np.hypot(xs - cx, ys - cy) / half
+    clip = np.clip(1.0 - (r - plateau) / (1.0 - plateau), 0.0, 1.0)
+    lit = (white - 40.0) * clip + 40.0
+    found = measure_plateau(lit, image, background=40.0)
+    # the first 0.5 px bin that has fallen by 0.1 % starts within a bin of the true edge
+    assert plateau - 0.5 / half - 0.01 <= found <= plateau + 0.01
+    assert measure_shading(lit, image, background=40.0).plateau_fraction == found
