@@ -397,16 +397,19 @@ def test_full_5120_sensor_frame_is_pixel_exact() -> None:
         with aravis_camera.AravisCamera(ADDRESS) as cam:
             assert (cam.info().sensor_width, cam.info().sensor_height) == (5120, 5120)
             cam.configure(CameraSettings("Mono8"))
-            for _ in range(3):
+            # at most 8 grabs (bounded): a saturated host drops UDP bursts of 26 MB frames
+            for _ in range(8):
                 try:
                     frame = cam.grab(timeout_s=5.0)
                 except IncompleteFrame:
-                    continue  # a UDP burst dropped on a saturated host: typed, never partial
+                    continue  # dropped packets: typed, never a partial frame
                 assert frame.pixels.shape == (5120, 5120)
                 assert np.array_equal(frame.pixels, pattern)
                 exact += 1
+                if exact == 2:
+                    break
         assert not fake.errors
-    assert exact >= 2
+    assert exact == 2
 
 
 def test_usb3_camera_by_serial_never_enables_gige_discovery(
