@@ -62,6 +62,11 @@ error (``frames[].Q_se``; the fit's own is ``Q_se_fit``): a bias common to the m
 of a frame (lens-lattice and edge-model errors) that their scatter cannot show; measured as
 -1e-5 on the project's simulator, where the fit errors alone were 28 % too small."""
 
+REFIT_FRACTION = 0.02
+"""The defocus is fitted once more, on the camera with its ``Q0``, when that camera's ``Q(u)``
+differs from the first one's (made with the rough ``Q0``) by more than this fraction of
+``Q0``'s σ anywhere in the sweep."""
+
 CORNER_AGREEMENT_RELATIVE = 2e-4
 """The two corners' Q may differ by this fraction before a significant difference is
 reported as a warning (MLA tilt or field curvature)."""
@@ -308,6 +313,14 @@ def _sweep_estimate(cam: CameraModelFit, g: SweepGeometry) -> Estimate:
     )
 
 
+def _on_camera(
+    observations: list[EdgeObservation], frames: list[FrameSummary], q_model: NDArray[np.float64]
+) -> list[EdgeObservation]:
+    """The observations with each frame's ``Q`` replaced by the camera's ``Q(u)``."""
+    by_frame = {fs.index: float(q) for fs, q in zip(frames, q_model, strict=True)}
+    return [replace(o, Q=by_frame[o.frame]) for o in observations]
+
+
 def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
     return {
         "Q0": d.Q0,
@@ -328,10 +341,13 @@ def _defocus_or_raise(
     observations: list[EdgeObservation],
     g: SweepGeometry,
     partial: dict[str, Any],
+    start: DefocusFit | None = None,
 ) -> DefocusFit:
-    """The whole-sweep defocus fit; :class:`FocusNotDeterminedError` with ``partial``."""
+    """The whole-sweep defocus fit (from ``start``'s parameters when given);
+    :class:`FocusNotDeterminedError` with ``partial``."""
+    theta0 = None if start is None else (start.Q0, start.kappa, start.shape_box)
     try:
-        defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px)
+        defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px, start=theta0)
     except DefocusNotDetermined as exc:
         partial["error"] = f"focus plane not determined: {exc}"
         raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
@@ -443,12 +459,21 @@ def combine(
     if not np.isfinite(rough[0]):
         _defocus_or_raise(observations, g, partial)  # says why the blur cannot be fitted
     cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
-    q_model, _ = cam.q_at_rail(np.array([fs.rail_mm for fs in frames]))
-    by_frame = {fs.index: float(q) for fs, q in zip(frames, q_model, strict=True)}
-    observations = [replace(o, Q=by_frame[o.frame]) for o in observations]
-    defocus = _defocus_or_raise(observations, g, partial)
+    rails = np.array([fs.rail_mm for fs in frames])
+    q_model, _ = cam.q_at_rail(rails)
+    defocus = _defocus_or_raise(_on_camera(observations, frames, q_model), g, partial)
     focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
     cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
+    # the first camera's Q(u) rests on the rough Q0, which leaves the data sheet some say:
+    # once more on the camera with the defocus's Q0 when its Q(u) moved by a tenth of Q0's σ
+    q_refined, _ = cam.q_at_rail(rails)
+    if float(np.max(np.abs(q_refined - q_model))) > REFIT_FRACTION * defocus.Q0_se:
+        observations_refined = _on_camera(observations, frames, q_refined)
+        defocus = _defocus_or_raise(observations_refined, g, partial, start=defocus)
+        focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
+        cam, measurements, shading = _camera_or_raise(
+            focus, arr, inv_m, inv_m_se, grid, g, partial
+        )
     priors = g.priors()
     corner_spread = _corner_systematic(frames, measurements, priors, cam)
     values, se = cam.values, cam.uncertainty

@@ -258,6 +258,24 @@ def test_wrong_data_sheet_values_are_replaced_by_the_sweep(
     assert abs(data["estimates"]["paper_route"]["b_mm"] / truth["b_mm"] - 1) > 0.01
 
 
+def test_the_focus_plane_does_not_depend_on_the_data_sheet(sweep: Path, tmp_path: Path) -> None:
+    """f -2 % moves the first camera fit (made with a rough Q0); the defocus is refitted on
+    the final camera, so the focus plane agrees with the exact data sheet's."""
+    manifest = json.loads((sweep / "sweep.json").read_text())
+    off = _restate(
+        sweep, tmp_path / "off", optics={"mla_focal_mm": manifest["optics"]["mla_focal_mm"] * 0.98}
+    )
+    results = []
+    for name, path in (("exact", sweep), ("off", off)):
+        assert main(["calibrate", str(path), "--out", str(tmp_path / f"{name}.json")]) == 0
+        results.append(json.loads((tmp_path / f"{name}.json").read_text())["focus"])
+    exact, wrong = results
+    assert abs(wrong["Q0"] - exact["Q0"]) < 0.05 * exact["Q0_se"]
+    assert abs(wrong["object_distance_mm"] - exact["object_distance_mm"]) < (
+        0.05 * exact["uncertainty_mm"]
+    )
+
+
 def test_impossible_data_sheet_values_name_the_prior(
     sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
