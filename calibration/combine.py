@@ -461,19 +461,18 @@ def combine(
     cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
     rails = np.array([fs.rail_mm for fs in frames])
     q_model, _ = cam.q_at_rail(rails)
-    defocus = _defocus_or_raise(_on_camera(observations, frames, q_model), g, partial)
-    focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
-    cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
-    # the first camera's Q(u) rests on the rough Q0, which leaves the data sheet some say:
-    # once more on the camera with the defocus's Q0 when its Q(u) moved by a tenth of Q0's σ
-    q_refined, _ = cam.q_at_rail(rails)
-    if float(np.max(np.abs(q_refined - q_model))) > REFIT_FRACTION * defocus.Q0_se:
-        observations_refined = _on_camera(observations, frames, q_refined)
-        defocus = _defocus_or_raise(observations_refined, g, partial, start=defocus)
+    # the first camera's Q(u) rests on the rough Q0, which leaves the data sheet some say: a
+    # second round, from the first defocus fit, when the camera with its Q0 moved Q(u)
+    start: DefocusFit | None = None
+    for _ in range(2):
+        on_camera = _on_camera(observations, frames, q_model)
+        defocus = _defocus_or_raise(on_camera, g, partial, start=start)
         focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
-        cam, measurements, shading = _camera_or_raise(
-            focus, arr, inv_m, inv_m_se, grid, g, partial
-        )
+        cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
+        q_refined, _ = cam.q_at_rail(rails)
+        if float(np.max(np.abs(q_refined - q_model))) <= REFIT_FRACTION * defocus.Q0_se:
+            break
+        q_model, start = q_refined, defocus
     priors = g.priors()
     corner_spread = _corner_systematic(frames, measurements, priors, cam)
     values, se = cam.values, cam.uncertainty

@@ -437,8 +437,8 @@ def fit_defocus(
     """Fit ``Q0`` (and the static kernel) to the edge-spread functions of a sweep.
 
     ``lens_pitch_px`` is ``D/δ``; ``start`` an earlier fit's ``(Q0, κ, α)`` to start
-    from instead of the coarse scan (a refit on a refined ``Q(u)``). Raises :class:`DefocusNotDetermined` when
-    fewer than 5 frames have edge-spread functions, or when the model's
+    from instead of the coarse scan (a refit on a refined ``Q(u)``). Raises
+    :class:`DefocusNotDetermined` when fewer than 5 frames have edge-spread functions, or when the model's
     defocus never exceeds ``min_blur_px`` pixels anywhere in the sweep (the
     blur does not change measurably: the focus plane cannot be located).
     """
@@ -454,12 +454,12 @@ def fit_defocus(
     q_lo, q_hi = float(prob.q.min()), float(prob.q.max())
     span = q_hi - q_lo
     q_bounds = (q_lo - span, q_hi + span)
-    # start: Q0 where the frames' edge spread is smallest (coarse scan of the projected fit)
-    spreads = np.array([o.esf.spread_px() for o in obs])
-    start_q = float(prob.q[np.nanargmin(spreads)]) if np.isfinite(spreads).any() else q_lo
     if start is not None and np.all(np.isfinite(start)):
         theta0 = np.asarray(start, dtype=np.float64)
     else:
+        # Q0 where the frames' edge spread is smallest (coarse scan of the projected fit)
+        spreads = np.array([o.esf.spread_px() for o in obs])
+        start_q = float(prob.q[np.nanargmin(spreads)]) if np.isfinite(spreads).any() else q_lo
         candidates = np.concatenate([np.linspace(q_lo, q_hi, 6), [start_q]])
         costs = [
             float(np.sum(prob.residuals(np.array([c, 1.0, 0.5]), rows) ** 2)) for c in candidates

@@ -159,11 +159,7 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
     regs = [np.ones_like(dx), dx, dy, rr]
     n = values.shape[0]
-    a = np.stack([np.where(inner, r, 0.0).reshape(n, -1) for r in regs], axis=2)
-    v = np.where(inner, logv, 0.0).reshape(n, -1)
-    at = np.swapaxes(a, 1, 2)
-    ata = at @ a + 1e-12 * np.eye(len(regs))[None]
-    coef = np.linalg.solve(ata, at @ v[:, :, None])
+    coef, _ = _per_image_fit(logv, regs, inner)
     full = np.stack([r.reshape(n, -1) for r in regs], axis=2)
     ratio = np.exp(logv.reshape(n, -1) - (full @ coef)[:, :, 0])
     radius = np.sqrt(rr).reshape(n, -1)
@@ -173,9 +169,9 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     vals = ratio[use]
     inside = (which >= 0) & (which < edges.size - 1)
     which, vals = which[inside], vals[inside]
-    count = np.bincount(which, minlength=edges.size - 1)[: edges.size - 1]
-    total = np.bincount(which, weights=vals, minlength=edges.size - 1)[: edges.size - 1]
-    total2 = np.bincount(which, weights=vals * vals, minlength=edges.size - 1)[: edges.size - 1]
+    count = np.bincount(which, minlength=edges.size - 1)
+    total = np.bincount(which, weights=vals, minlength=edges.size - 1)
+    total2 = np.bincount(which, weights=vals * vals, minlength=edges.size - 1)
     for b in np.flatnonzero(count >= 10):
         mean = total[b] / count[b]
         var = max(0.0, total2[b] / count[b] - mean * mean)
@@ -226,16 +222,23 @@ def _samples(
     return dx, dy, values, good, int(ii.size)
 
 
-def _residual_after(
+def _per_image_fit(
     values: NDArray[np.float64], regressors: list[NDArray[np.float64]], mask: NDArray[np.bool_]
-) -> NDArray[np.float64]:
-    """``values`` minus their per-micro-image least-squares fit on ``regressors`` (masked)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Least squares of ``values`` on ``regressors`` per micro-image (first axis) over the
+    ``mask``ed pixels: the coefficients ``(n, k, 1)`` and the masked values minus the fit
+    ``(n, pixels)``."""
     n = values.shape[0]
     k = len(regressors)
     a = np.stack([np.where(mask, r, 0.0).reshape(n, -1) for r in regressors], axis=2)
     v = np.where(mask, values, 0.0).reshape(n, -1)
     at = np.swapaxes(a, 1, 2)
-    ata = at @ a + 1e-12 * np.eye(k)[None]
-    coef = np.linalg.solve(ata, at @ v[:, :, None])
-    fitted = (a @ coef)[:, :, 0]
-    return (v - fitted).reshape(values.shape)
+    coef = np.linalg.solve(at @ a + 1e-12 * np.eye(k)[None], at @ v[:, :, None])
+    return coef, v - (a @ coef)[:, :, 0]
+
+
+def _residual_after(
+    values: NDArray[np.float64], regressors: list[NDArray[np.float64]], mask: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """``values`` minus their per-micro-image least-squares fit on ``regressors`` (masked)."""
+    return _per_image_fit(values, regressors, mask)[1].reshape(values.shape)
