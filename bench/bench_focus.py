@@ -1,7 +1,7 @@
 """Focus plane, a, b and the data-sheet priors on three renderers, with uncertainty coverage.
 
 ``python -m bench.bench_focus [--renderers sim,indsim,mcsim] [--configs NAMES]
-[--seeds N] [--jobs N] [--quick] [--root DIR]`` (``python -m bench focus`` runs
+[--seeds N] [--repeats N] [--jobs N] [--quick] [--root DIR]`` (``python -m bench focus`` runs
 the full default; not in the default ``make bench`` set: the first run renders
 for hours). What it renders and why: :mod:`bench.focus.configs`; targets:
 :mod:`bench.focus.evaluate`. Renders are cached under ``out/bench/focus/``
@@ -14,7 +14,10 @@ Rows per renderer and sweep and data sheet: the focus-plane, a, b, F, f and
 rail-zero errors and the worst per-frame p error against their targets (a
 failed calibration, exit 2/3/4, is a row with its message, not a crash); for
 the standard-corner-only sweeps, whether F and the rail zero fell back to
-the data sheet. Per renderer, over ``--seeds`` coverage sweeps: the fraction of
+the data sheet. With ``--repeats N``, each accuracy sweep is rendered N more times with
+other seeds and calibrated with the exact data sheet: the mean error over its seeds (the
+bias), the spread and the RMS error (held against the target) tell a bias from one
+seed's luck. Per renderer, over ``--seeds`` coverage sweeps: the fraction of
 seeds whose error is within 1 and within 3 reported sigma (exact and wrong data
 sheets), the RMS of error/sigma, the mean and the worst error. Then the load
 average of the machine during the run.
@@ -42,6 +45,7 @@ from bench.focus.configs import (
     SweepConfig,
     coverage_config,
     quick_config,
+    repeat_config,
 )
 from bench.focus.evaluate import (
     COVERAGE_KEYS_EXACT,
@@ -51,8 +55,9 @@ from bench.focus.evaluate import (
     coverage_rows,
     failed_row,
     label,
+    repeat_rows,
 )
-from bench.focus.summary import accuracy_lines, coverage_lines
+from bench.focus.summary import accuracy_lines, coverage_lines, repeat_lines
 from calibration.pipeline import CalibrationError, calibrate_archive
 
 DEFAULT_SEEDS = 20
@@ -166,9 +171,30 @@ class Run:
                 out.append((offset, cmp))
         return out
 
-    def accuracy(self, config: SweepConfig, render: cache.Render) -> None:
+    def accuracy(self, config: SweepConfig, render: cache.Render) -> Comparison | None:
+        """The accuracy rows of every data sheet; the exact data sheet's comparison."""
+        exact = None
         for offset, cmp in self.comparisons(config, render):
             self.rows.extend(accuracy_rows(config, offset, cmp))
+            if offset.exact:
+                exact = cmp
+        return exact
+
+    def repeats(
+        self,
+        config: SweepConfig,
+        first: Comparison | None,
+        repeats: list[SweepConfig],
+        renders: dict[Any, Any],
+    ) -> None:
+        """The sweep over its seeds: itself and its repeats, exact data sheet."""
+        found = [] if first is None else [first]
+        for repeat in repeats:
+            found += [
+                cmp for _, cmp in self.comparisons(repeat, renders[(repeat.renderer, repeat.name)])
+            ]
+        if len(found) >= 2:
+            self.rows.extend(repeat_rows(config, found))
 
     def coverage(self, renderer: str, configs: list[SweepConfig], renders: dict[Any, Any]) -> None:
         exact: list[Comparison] = []
@@ -190,7 +216,7 @@ def _fmt(entry: dict[str, Any]) -> str:
 def select(
     renderers: tuple[str, ...], names: tuple[str, ...] | None, seeds: int, quick: bool
 ) -> tuple[list[SweepConfig], dict[str, list[SweepConfig]]]:
-    """The accuracy sweeps and, per renderer, the coverage sweeps of a run."""
+    """The accuracy sweeps and, per renderer, the coverage sweeps of a run (repeats apart)."""
     accuracy: list[SweepConfig] = []
     coverage: dict[str, list[SweepConfig]] = {}
     for r in renderers:
@@ -218,17 +244,24 @@ def run(
     jobs: int = 2,
     quick: bool = False,
     root: Path = cache.ROOT,
+    repeats: int = 0,
 ) -> list[dict[str, Any]]:
     """Render what is missing, calibrate everything, return the rows (and write results.json)."""
     started = time.time()
     accuracy, coverage = select(renderers, names, seeds, quick)
+    again = {
+        (c.renderer, c.name): [repeat_config(c, k) for k in range(1, repeats + 1)] for c in accuracy
+    }
     every = accuracy + [c for cs in coverage.values() for c in cs]
+    every += [c for cs in again.values() for c in cs]
     bench = Run(root, jobs)
     with LoadSampler() as load:
         _say(f"{len(every)} sweeps ({sum(not cache.is_cached(root, c) for c in every)} to render)")
         renders = cache.render_all(every, root, jobs, progress=_say)
         for config in accuracy:
-            bench.accuracy(config, renders[(config.renderer, config.name)])
+            exact = bench.accuracy(config, renders[(config.renderer, config.name)])
+            if again[(config.renderer, config.name)]:
+                bench.repeats(config, exact, again[(config.renderer, config.name)], renders)
         for renderer, configs in coverage.items():
             bench.coverage(renderer, configs, renders)
     rows = bench.rows
@@ -279,6 +312,7 @@ def run(
             "seeds": seeds,
             "jobs": jobs,
             "quick": quick,
+            "repeats": repeats,
         },
         "rows": [_jsonable(r) for r in rows],
         "calibrations": [_jsonable(d) for d in bench.details],
@@ -323,6 +357,12 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help=f"coverage seeds per renderer (default {DEFAULT_SEEDS}, quick {QUICK_SEEDS})",
     )
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=0,
+        help="more seeds of every accuracy sweep, exact data sheet: mean, sd and RMS error",
+    )
     p.add_argument("--jobs", type=int, default=2, help="renders at a time, and calibration workers")
     p.add_argument(
         "--quick", action="store_true", help="one small sweep per renderer and 3 coverage seeds"
@@ -333,12 +373,23 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown renderer(s) {', '.join(unknown)}: choose from {', '.join(RENDERERS)}")
     seeds = args.seeds if args.seeds is not None else (QUICK_SEEDS if args.quick else DEFAULT_SEEDS)
-    rows = run(tuple(args.renderers), args.configs, seeds, max(1, args.jobs), args.quick, args.root)
+    rows = run(
+        tuple(args.renderers),
+        args.configs,
+        seeds,
+        max(1, args.jobs),
+        args.quick,
+        args.root,
+        max(0, args.repeats),
+    )
     from bench.__main__ import print_table
 
     print_table(rows)
     print("\nsummary (|error|; * missed target, p from the data sheet, σ error/sigma):")
     print("\n".join(accuracy_lines(rows)))
+    if repeated := repeat_lines(rows):
+        print("\nover the seeds of each accuracy sweep (signed mean error, sd, RMS; * missed):")
+        print("\n".join(repeated))
     print()
     print("\n".join(coverage_lines(rows)))
     return 0 if all(r.get("ok") is not False for r in rows) else 1

@@ -21,14 +21,21 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from bench.bench_focus import Run
 from bench.crosscheck import indsim
 from bench.focus import cache
-from bench.focus.configs import ALL_OFF, EXACT, PriorOffset, SweepConfig
-from bench.focus.evaluate import Comparison, compare, coverage_bounds, coverage_rows
-from bench.focus.summary import accuracy_lines
+from bench.focus.configs import ALL_OFF, EXACT, PriorOffset, SweepConfig, repeat_config
+from bench.focus.evaluate import (
+    Comparison,
+    compare,
+    coverage_bounds,
+    coverage_rows,
+    repeat_rows,
+)
+from bench.focus.summary import accuracy_lines, repeat_lines
 from bench.mcsim.archive import truth as mcsim_truth
 from bench.mcsim.spec import build_spec
 from calibration.archive import SweepArchive
@@ -260,3 +267,47 @@ def test_coverage_rows_count_seeds_within_one_and_three_sigma() -> None:
     assert rms == pytest.approx(math.sqrt(sum(z * z for z in zs) / 5))
     lo, hi, least3 = coverage_bounds(20)
     assert (lo, hi, least3) == (9, 17, 19)
+
+
+def test_repeat_rows_separate_the_bias_from_the_scatter() -> None:
+    """Seeds of one accuracy sweep: signed mean error, sample sd, RMS against the target."""
+    errors = [0.02, 0.04, 0.03, 0.05]  # a, %: a bias of 0.035 % with a small scatter
+    comparisons = []
+    for e in errors:
+        cmp = Comparison()
+        cmp.values["a"] = {"error": e, "sigma": 0.04, "z": e / 0.04, "determined_by": None}
+        comparisons.append(cmp)
+    config = repeat_config(TINY, 2)
+    assert config.seed == TINY.seed + 2000 and config.priors == (EXACT,)
+    assert config.name == "tiny-standard-s2" and config.args == TINY.args
+    rows = {r["name"]: r for r in repeat_rows(TINY, comparisons)}
+    head = "sim tiny-standard repeats [exact, 4 seeds]: a error "
+    assert rows[head + "mean"]["value"] == pytest.approx(0.035)
+    assert rows[head + "sd over seeds"]["value"] == pytest.approx(np.std(errors, ddof=1))
+    rms = rows[head + "RMS"]
+    assert rms["value"] == pytest.approx(math.sqrt(np.mean(np.square(errors))))
+    assert rms["target"] == 0.03 and rms["ok"] is False  # every seed is off the same way
+    assert not any("focus" in name for name in rows)  # no focus errors given: no rows
+    # the summary keeps them out of the per-calibration lines and shows them apart
+    assert all("repeats" not in line for line in accuracy_lines(list(rows.values())))
+    lines = repeat_lines(list(rows.values()))
+    assert len(lines) == 2 and "+0.0350" in lines[1] and lines[1].rstrip().endswith("*")
+
+
+def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cache.Render]) -> None:
+    root, render = tiny
+    run = Run(root, jobs=1)
+    first = run.accuracy(TINY, render)
+    assert first is not None
+    repeat = repeat_config(TINY, 1)
+    renders = {(repeat.renderer, repeat.name): cache.render(repeat, root)}
+    run.repeats(TINY, first, [repeat], renders)
+    details = [d for d in run.details if d["config"] == repeat.name]
+    assert [d["priors"] for d in details] == ["exact"]
+    names = [r["name"] for r in run.rows if " repeats [" in r["name"]]
+    assert "sim tiny-standard repeats [exact, 2 seeds]: a error RMS" in names, names
+    # another seed: another noise realisation, so another error
+    errors = {
+        d["config"]: d["quantities"]["a"]["error"] for d in run.details if d["priors"] == "exact"
+    }
+    assert errors[TINY.name] != errors[repeat.name]

@@ -215,6 +215,24 @@ def coverage_config(renderer: str, k: int) -> SweepConfig:
     )
 
 
+REPEAT_SEED_STEP = 1000
+
+
+def repeat_config(config: SweepConfig, k: int) -> SweepConfig:
+    """The ``k``-th (1, 2, ...) repeat of an accuracy sweep: the same camera and sweep with
+    another seed (noise, and ray noise for mcsim), calibrated with the exact data sheet. One
+    seed's error is one draw: the repeats tell a bias from luck."""
+    return SweepConfig(
+        config.renderer,
+        f"{config.name}-s{k}",
+        config.args,
+        config.seed + REPEAT_SEED_STEP * k,
+        f"{config.about} (repeat {k}, seed {config.seed + REPEAT_SEED_STEP * k})",
+        priors=(EXACT,),
+        standard_only=config.standard_only,
+    )
+
+
 def quick_config(renderer: str) -> SweepConfig:
     """The quick run's accuracy sweep: the first coverage sweep with every data sheet."""
     base = coverage_config(renderer, 0)

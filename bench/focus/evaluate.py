@@ -257,6 +257,35 @@ def accuracy_rows(
     return rows
 
 
+REPEAT_KEYS = ("focus", "a", "b")
+
+
+def repeat_rows(config: SweepConfig, comparisons: list[Comparison]) -> list[dict[str, Any]]:
+    """An accuracy sweep over its seeds (the sweep itself and its repeats, exact data sheet):
+    per quantity the mean error (the bias), its standard deviation over the seeds and the RMS
+    error, which is held against the target (the error to expect on one sweep)."""
+    n = len(comparisons)
+    head = f"{config.renderer} {config.name} repeats [exact, {n} seeds]"
+    rows = []
+    for key in REPEAT_KEYS:
+        q = BY_KEY[key]
+        errors = [
+            float(e["error"])
+            for e in (c.values.get(key, {}) for c in comparisons)
+            if e.get("error") is not None and e.get("determined_by") != "prior"
+        ]
+        if not errors:
+            continue
+        m = len(errors)
+        mean = sum(errors) / m
+        sd = math.sqrt(sum((e - mean) ** 2 for e in errors) / max(m - 1, 1))
+        rms = math.sqrt(sum(e * e for e in errors) / m)
+        rows.append(_row(f"{head}: {q.label} mean", mean, q.unit, None, note=f"{m} seeds"))
+        rows.append(_row(f"{head}: {q.label} sd over seeds", sd, q.unit, None))
+        rows.append(_row(f"{head}: {q.label} RMS", rms, q.unit, TARGETS_EXACT[key]))
+    return rows
+
+
 def failed_row(
     config: SweepConfig, offset: PriorOffset | None, code: int, message: str
 ) -> dict[str, Any]:

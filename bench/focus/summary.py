@@ -49,7 +49,7 @@ def accuracy_lines(rows: list[dict[str, Any]]) -> list[str]:
     failed: list[str] = []
     for row in rows:
         name = str(row["name"])
-        if " coverage [" in name or "[" not in name:
+        if " coverage [" in name or " repeats [" in name or "[" not in name:
             continue
         head, _, what = name.partition("]: ")
         head += "]"
@@ -68,6 +68,28 @@ def accuracy_lines(rows: list[dict[str, Any]]) -> list[str]:
             + extra
         )
     return lines + failed
+
+
+def repeat_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """Per accuracy sweep with repeats and quantity: mean error, its sd over seeds, RMS error."""
+    table: dict[tuple[str, str], dict[str, str]] = {}
+    for row in rows:
+        name = str(row["name"])
+        if " repeats [" not in name:
+            continue
+        head, _, what = name.partition("]: ")
+        quantity, _, stat = what.partition(" error ")
+        ok = "" if row.get("ok") is not False else "*"
+        table.setdefault((head + "]", quantity), {})[stat] = f"{row['value']:+.4f}{ok}"
+    if not table:
+        return []
+    keys = ("mean", "sd over seeds", "RMS")
+    width = max(len(h) + len(q) + 1 for h, q in table)
+    lines = [" ".join([" " * width, *(f"{k:>14}" for k in keys)])]
+    for (head, quantity), cells in table.items():
+        label = f"{head} {quantity}".ljust(width)
+        lines.append(" ".join([label, *(f"{cells.get(k, '-'):>14}" for k in keys)]))
+    return lines
 
 
 def coverage_lines(rows: list[dict[str, Any]]) -> list[str]:
@@ -102,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     report = read_json(path)
     rows = report["rows"]
     print("\n".join(accuracy_lines(rows)))
+    repeats = repeat_lines(rows)
+    if repeats:
+        print()
+        print("\n".join(repeats))
     print()
     print("\n".join(coverage_lines(rows)))
     load = report.get("load_average_1min", {})
