@@ -80,7 +80,8 @@ def repeat_lines(rows: list[dict[str, Any]]) -> list[str]:
         head, _, what = name.partition("]: ")
         quantity, _, stat = what.partition(" error ")
         ok = "" if row.get("ok") is not False else "*"
-        table.setdefault((head + "]", quantity), {})[stat] = f"{row['value']:+.4f}{ok}"
+        sign = "+" if stat == "mean" else ""
+        table.setdefault((head + "]", quantity), {})[stat] = f"{row['value']:{sign}.4f}{ok}"
     if not table:
         return []
     keys = ("mean", "sd over seeds", "RMS")
