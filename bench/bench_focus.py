@@ -259,9 +259,10 @@ def run(
         _say(f"{len(every)} sweeps ({sum(not cache.is_cached(root, c) for c in every)} to render)")
         renders = cache.render_all(every, root, jobs, progress=_say)
         for config in accuracy:
-            exact = bench.accuracy(config, renders[(config.renderer, config.name)])
-            if again[(config.renderer, config.name)]:
-                bench.repeats(config, exact, again[(config.renderer, config.name)], renders)
+            key = (config.renderer, config.name)
+            exact = bench.accuracy(config, renders[key])
+            if again[key]:
+                bench.repeats(config, exact, again[key], renders)
         for renderer, configs in coverage.items():
             bench.coverage(renderer, configs, renders)
     rows = bench.rows

@@ -84,8 +84,12 @@ def repeat_lines(rows: list[dict[str, Any]]) -> list[str]:
         table.setdefault((head + "]", quantity), {})[stat] = f"{row['value']:{sign}.4f}{ok}"
     if not table:
         return []
-    keys = ("mean", "sd over seeds", "RMS")
-    width = max(len(h) + len(q) + 1 for h, q in table)
+    return _table_lines(table, ("mean", "sd over seeds", "RMS"))
+
+
+def _table_lines(table: dict[tuple[str, str], dict[str, str]], keys: tuple[str, ...]) -> list[str]:
+    """A header of ``keys`` and one line per ``(head, quantity)`` with its cells."""
+    width = max((len(h) + len(q) + 1 for h, q in table), default=10)
     lines = [" ".join([" " * width, *(f"{k:>14}" for k in keys)])]
     for (head, quantity), cells in table.items():
         label = f"{head} {quantity}".ljust(width)
@@ -110,13 +114,7 @@ def coverage_lines(rows: list[dict[str, Any]]) -> list[str]:
             cells["rms z"] = f"{row['value']:.2f}"
         else:
             cells[stat] = f"{row['value']:+.4f}" if stat == "mean" else f"{row['value']:.4f}"
-    keys = ("within 1 sigma", "within 3 sigma", "rms z", "mean", "worst")
-    width = max((len(h) + len(q) + 1 for h, q in table), default=10)
-    lines = [" ".join([" " * width, *(f"{k:>14}" for k in keys)])]
-    for (head, quantity), cells in table.items():
-        label = f"{head} {quantity}".ljust(width)
-        lines.append(" ".join([label, *(f"{cells.get(k, '-'):>14}" for k in keys)]))
-    return lines
+    return _table_lines(table, ("within 1 sigma", "within 3 sigma", "rms z", "mean", "worst"))
 
 
 def main(argv: list[str] | None = None) -> int:
