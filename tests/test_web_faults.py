@@ -557,6 +557,8 @@ def test_disk_full_from_another_process(tmp_path: Path, pytestconfig: pytest.Con
         assert "free space" in refused.json()["message"]
         resumed = c.post(f"{API}/jobs/{job_id}/resume", headers=keyed())
         assert resumed.status_code == 507, resumed.text
+        # at least one answer well inside the full period (the steps above can take < 0.2 s)
+        watch.fresh(full_at + 0.2)
         freed_at = time.monotonic()
         filler.unlink()
         # every answer while the disk was full said so (the first may predate the check)

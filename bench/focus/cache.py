@@ -28,6 +28,9 @@ from station.summary_table import truth_value
 ROOT = Path("out/bench/focus")
 MARKER = ".complete"
 MARKER_FORMAT = "lfcal-bench-focus/1"
+RENDERER_REVISIONS = {"sim": 1, "indsim": 2, "mcsim": 1}
+"""Bumped when a renderer's output changes, so its cached sweeps are rendered again
+(indsim 2: board raster at least 32 points per sensor pixel)."""
 
 
 @dataclass
@@ -62,6 +65,7 @@ def _marker_text(config: SweepConfig) -> str:
     key = {
         "format": MARKER_FORMAT,
         "renderer": config.renderer,
+        "revision": RENDERER_REVISIONS[config.renderer],
         "args": list(config.args),
         "seed": config.seed,
     }
