@@ -126,10 +126,14 @@ def test_descriptors_stay_flat_over_100_bursts_of_40_concurrent_requests(
     assert pooled_max <= 8, samples
     fds = [f for f, _ in samples]
     assert max(fds) - fds[0] <= 3 * (pooled_max - samples[0][1]) + 1, samples
-    settled_fds = [f for f, pooled in samples if pooled == pooled_max]
-    assert len(settled_fds) >= 10, samples  # the pool reaches its size early
-    assert max(settled_fds) - min(settled_fds) <= 1, samples
-    assert max(settled_fds[-10:]) <= max(settled_fds[:10]), samples
+    # flat over the last half of the bursts, but for what the pool's growth there explains
+    # (how early the lazy pool reaches its size depends on scheduling: a CI run reached it
+    # only in the last 3 bursts); one descriptor leaked per burst would add 50
+    late = samples[len(samples) // 2 :]
+    late_fds = [f for f, _ in late]
+    late_growth = max(p for _, p in late) - min(p for _, p in late)
+    assert max(late_fds) - min(late_fds) <= 3 * late_growth + 1, samples
+    assert late_fds[-1] - late[0][0] <= 3 * (late[-1][1] - late[0][1]) + 1, samples
     print(
         f"descriptors over 100 bursts: {fds[0]}..{max(fds)} "
         f"(store connections {samples[0][1]}..{pooled_max})"
