@@ -175,16 +175,18 @@ def _shading_bias(
 ) -> tuple[float, float, dict[str, Any]]:
     """``η`` of the disparity's shading bias ``Q·(1 + η(Q - Q0))`` and its uncertainty.
 
-    ``η = Var(p)·c`` (:mod:`calibration.shading`): ``c`` from the white image,
-    the aperture variance from the defocus fit's ``κ`` (its RMS width is that
-    of a box ``κ·D/δ`` wide).
+    ``η = Var(p)·c`` (:mod:`calibration.shading`): ``c`` the angular curvature from the
+    white image (uncertain between 0 and the measured curvature when that depends on the
+    radius, :meth:`~calibration.shading.WhiteShading.angular_curvature`), the aperture
+    variance from the defocus fit's ``κ`` (its RMS width is that of a box ``κ·D/δ`` wide).
     """
     shading = grid.shading
     if shading is None or not np.isfinite(shading.curvature_px2):
         return 0.0, 0.0, {"applied": False}
     variance = (kappa * g.lens_pitch_px) ** 2 / 12.0
     eta = shading.bias_coefficient(variance)
-    eta_se = float(np.hypot(shading.curvature_se_px2 * variance, SHADING_MODEL_UNCERTAINTY * eta))
+    curvature_se = shading.angular_curvature()[1]
+    eta_se = float(np.hypot(curvature_se * variance, SHADING_MODEL_UNCERTAINTY * eta))
     info = {
         "applied": True,
         "eta": eta,
@@ -533,6 +535,16 @@ def combine(
         )
     priors_section, prior_warnings = _priors_section(cam, priors)
     warnings.extend(prior_warnings)
+    if grid.shading is not None and not grid.shading.radially_consistent:
+        sh = grid.shading
+        warnings.append(
+            "the white image's shading curves more over the whole micro-image interior "
+            f"({sh.curvature_px2:.2e} px^-2) than inside half its radius "
+            f"({sh.inner_curvature_px2:.2e} px^-2): the micro-image rims are blurred into the "
+            "interior (diffraction?), so the angular shading, and with it the disparity's "
+            "shading bias and the pitch's rim correction, is taken as anywhere between 0 and "
+            "the measured curvature (b and L less certain)"
+        )
     if abs(defocus.kappa - 1.0) > 0.25:
         warnings.append(
             f"the defocus blur is {defocus.kappa:.2f} times the full microlens aperture: the "

@@ -50,6 +50,11 @@ INTERIOR_FRACTION = 0.6
 MAX_MICRO_IMAGES = 600
 """At most this many micro-images (evenly spread over the sensor) are measured."""
 
+RADIAL_CONSISTENCY_SIGMAS = 3.0
+"""The curvature measured inside half the radius must agree with the whole interior's within
+this many combined standard errors; otherwise the white image's falloff is not angular
+shading alone (see :meth:`WhiteShading.angular_curvature`)."""
+
 PLATEAU_INNER_FRACTION = 0.45
 """The part of a micro-image (fraction of half its pitch) taken as lit for certain: the
 smooth shading fitted there is extrapolated outwards to find where the plateau ends."""
@@ -80,15 +85,53 @@ class WhiteShading:
     plateau_fraction: float = float("nan")
     """Radius of the fully lit interior, fraction of half the micro-image pitch (NaN: not
     measured)."""
+    inner_curvature_px2: float = float("nan")
+    """The same curvature fitted inside half that radius (NaN: not measured)."""
+    inner_curvature_se_px2: float = float("nan")
+
+    @property
+    def radially_consistent(self) -> bool:
+        """Whether the curvature is the same inside half the radius as over the whole
+        interior (within :data:`RADIAL_CONSISTENCY_SIGMAS`; true when not measured)."""
+        if not (np.isfinite(self.inner_curvature_px2) and np.isfinite(self.curvature_px2)):
+            return True
+        se = float(np.hypot(self.curvature_se_px2, self.inner_curvature_se_px2))
+        return abs(self.curvature_px2 - self.inner_curvature_px2) <= RADIAL_CONSISTENCY_SIGMAS * se
+
+    def angular_curvature(self) -> tuple[float, float]:
+        """``(c, σ)`` of the angular shading (px⁻²).
+
+        The rays' angular weights make ``log W`` a paraboloid about the lens centre,
+        the same at every radius. When the curvature grows with the radius it is fitted
+        over (:attr:`radially_consistent` false), something else bends the white image
+        inside the micro-images: a rim blurred inwards, by diffraction above all (a
+        microlens at f/12 in green light spreads ~1/x² tails over the whole micro-image;
+        on a Monte-Carlo white image with that diffraction the curvature came out 7×
+        the rays' cos⁴, 4× even inside a fifth of the radius). Light taken from the
+        interior by a blurred rim only adds curvature, so the angular part lies between
+        0 and the measured value, and where in it is not known (on those white images a
+        tenth to a seventh of it): ``c/2 ± c/2``, the whole interval within one sigma.
+        """
+        if self.radially_consistent:
+            return self.curvature_px2, self.curvature_se_px2
+        c = self.curvature_px2
+        return 0.5 * c, float(np.hypot(self.curvature_se_px2, 0.5 * abs(c)))
 
     def bias_coefficient(self, aperture_variance_px2: float) -> float:
-        """``η = Var(p)·c``: the disparity reads ``Q·(1 + η·(Q - Q0))``."""
-        return aperture_variance_px2 * self.curvature_px2
+        """``η = Var(p)·c``: the disparity reads ``Q·(1 + η·(Q - Q0))`` (``c`` the angular
+        curvature, :meth:`angular_curvature`)."""
+        return aperture_variance_px2 * self.angular_curvature()[0]
 
     def to_dict(self) -> dict[str, Any]:
+        c, c_se = self.angular_curvature()
         return {
             "curvature_px2": self.curvature_px2,
             "curvature_se_px2": self.curvature_se_px2,
+            "inner_curvature_px2": self.inner_curvature_px2,
+            "inner_curvature_se_px2": self.inner_curvature_se_px2,
+            "radially_consistent": self.radially_consistent,
+            "angular_curvature_px2": c,
+            "angular_curvature_se_px2": c_se,
             "micro_images": self.micro_images,
             "plateau_fraction": self.plateau_fraction,
         }
@@ -111,28 +154,46 @@ def measure_shading(
     if samples is None:
         return WhiteShading(float("nan"), float("nan"), 0, plateau)
     dx, dy, values, good, n_images = samples
+    rr = dx * dx + dy * dy
+    curvature, se = _curvature(values, dx, dy, good, n_images)
+    # the same inside half the radius: angular shading is one paraboloid at every radius
+    inner_radius = 0.5 * fraction * 0.5 * image_grid.pitch_px
+    inner, inner_se = _curvature(values, dx, dy, good & (rr <= inner_radius**2), n_images)
+    return WhiteShading(
+        curvature_px2=curvature,
+        curvature_se_px2=se,
+        micro_images=n_images if np.isfinite(curvature) else 0,
+        plateau_fraction=plateau,
+        inner_curvature_px2=inner,
+        inner_curvature_se_px2=inner_se,
+    )
+
+
+def _curvature(
+    values: NDArray[np.float64],
+    dx: NDArray[np.float64],
+    dy: NDArray[np.float64],
+    good: NDArray[np.bool_],
+    n_images: int,
+) -> tuple[float, float]:
+    """``c`` of ``log W ≈ level + gradient·(dx, dy) - (c/2)·(dx² + dy²)`` with a level and a
+    gradient per micro-image (fixed effects) and one ``c`` for all, over the ``good``
+    pixels; and its standard error (px⁻²; NaN when the pixels do not determine it)."""
     logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
-    # fixed effects: regress out a level and a gradient per micro-image, then one curvature
     rr = dx * dx + dy * dy
     regs = [np.ones_like(dx), dx, dy]
     y = _residual_after(logv, regs, good)
     x = _residual_after(rr, regs, good)
     sxx = float(np.sum(np.where(good, x * x, 0.0)))
     if sxx <= 0:
-        return WhiteShading(float("nan"), float("nan"), 0, plateau)
+        return float("nan"), float("nan")
     slope = float(np.sum(np.where(good, x * y, 0.0)) / sxx)
     resid = np.where(good, y - slope * x, 0.0)
     n = int(good.sum())
     dof = max(1, n - 3 * n_images - 1)
     sigma2 = float(np.sum(resid * resid) / dof)
     # pixels of one micro-image share its noise only through the fitted level: independent
-    se = float(np.sqrt(sigma2 / sxx))
-    return WhiteShading(
-        curvature_px2=-2.0 * slope,
-        curvature_se_px2=2.0 * se,
-        micro_images=n_images,
-        plateau_fraction=plateau,
-    )
+    return -2.0 * slope, 2.0 * float(np.sqrt(sigma2 / sxx))
 
 
 def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0) -> float:

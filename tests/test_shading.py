@@ -80,3 +80,32 @@ def test_the_fully_lit_plateau_ends_where_the_white_image_falls_off(plateau: flo
     # the first 0.5 px bin that has fallen by 0.1 % starts within a bin of the true edge
     assert plateau - 0.5 / half - 0.01 <= found <= plateau + 0.01
     assert measure_shading(lit, image, background=40.0).plateau_fraction == found
+
+
+def _diffraction_blurred(white: np.ndarray, first_zero_px: float) -> np.ndarray:
+    """The white image through a diffraction-limited square microlens aperture: the
+    separable sinc² pattern (first zeros at ``±first_zero_px``, out to 40 px, normalised)."""
+    from scipy.signal import fftconvolve
+
+    x = np.arange(-40, 41, dtype=float)
+    line = np.sinc(x / first_zero_px) ** 2
+    line /= line.sum()
+    return fftconvolve(white, np.outer(line, line), mode="same")
+
+
+def test_a_rim_blurred_into_the_interior_is_not_taken_for_angular_shading() -> None:
+    """Diffraction spreads each micro-image's rim into its interior (1/x² tails), which bends
+    log W more towards the rim: the curvature then depends on the radius it is fitted over,
+    and the angular part is only known to lie between 0 and the measured curvature."""
+    curvature = 3e-6
+    white, image = _white(curvature, seed=3, noise=0.002)
+    clean = measure_shading(white, image, background=40.0)
+    assert clean.radially_consistent
+    assert clean.angular_curvature() == (clean.curvature_px2, clean.curvature_se_px2)
+    blurred = _diffraction_blurred(white - 40.0, 2.5) + 40.0
+    found = measure_shading(blurred, image, background=40.0)
+    assert found.curvature_px2 > 3 * curvature  # the rim's tails, not the rays' angles
+    assert not found.radially_consistent
+    c, se = found.angular_curvature()
+    assert abs(c - curvature) <= se  # the true angular curvature is covered
+    assert found.to_dict()["radially_consistent"] is False
