@@ -32,7 +32,7 @@ from .corners import (
     measure_corners,
 )
 from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
-from .edge_spread import BinnedEsf, frame_esf
+from .edge_spread import TAIL_SAMPLES, BinnedEsf, frame_esf, profile_half_px
 from .lens_grid import LensGrid
 from .optics import image_distance
 
@@ -349,6 +349,10 @@ def analyze_frame(
     return result
 
 
+PROFILE_PLATEAU_FRACTION = 0.5
+"""A profile's half length is at most this fraction of the plateau's radius (its 2h + 1
+samples must lie inside the plateau, for enough rows of every micro-image)."""
+
 REACH_FRACTION = 0.8
 """Profiles are cut along a half-edge up to this fraction of a board square from its
 corner: short of the next corner of the board."""
@@ -376,12 +380,24 @@ def _edge_spread(
 ) -> BinnedEsf | None:
     """The corner's edge-spread function from every micro-image that shows its half-edges."""
     opts = ctx.options
+    plateau_px = opts.blur_radius_fraction * 0.5 * ctx.image_grid.pitch_px
+    # longer profiles for blurred edges (flat tails), within what the plateau holds
+    half_px = profile_half_px(
+        fit.edge_width_px,
+        minimum=opts.profile_half_px,
+        maximum=int(PROFILE_PLATEAU_FRACTION * plateau_px),
+    )
     window = ProfileWindow(
-        plateau_px=opts.blur_radius_fraction * 0.5 * ctx.image_grid.pitch_px,
+        plateau_px=plateau_px,
         clearance_px=opts.blur_clearance_px,
         reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
-        half_px=opts.profile_half_px,
+        half_px=half_px,
     )
     assert fit.lattice is not None
     profiles, jitter = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
-    return frame_esf(profiles, start_width_px=fit.edge_width_px, jitter_px=jitter)
+    return frame_esf(
+        profiles,
+        start_width_px=fit.edge_width_px,
+        jitter_px=jitter,
+        max_flat_px=half_px - TAIL_SAMPLES,
+    )

@@ -12,7 +12,10 @@ Three renderers write ``lfcal-sweep/1`` archives with a ``truth.json``:
 On each renderer three accuracy sweeps cover, together, what issue 10 asks
 for: a focus plane between rail steps, a sweep that starts or ends about 8 mm
 from the focus plane, a 2 mm step, a standard-corner-only window (F and the
-rail zero must then fall back to the data sheet) and high noise. Each
+rail zero must then fall back to the data sheet) and high noise. mcsim adds two
+sweeps with the microlenses' diffraction at 550 nm (its sinc² pattern is wider than
+the defocus over most of a sweep, as in a real camera at f/12 and beyond; about 20 min
+of rendering on 2 cores). Each
 two-corner sweep is calibrated with the exact data sheet and with four wrong
 ones (issue 11: F ±2 %, f ±2 %, rail zero ±2 mm, alone and combined); the
 standard-only sweep with the exact and the combined wrong data sheet.
@@ -174,6 +177,21 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
             _args("--preset small --step-mm 2 --frames 50 --photons 1500 --read-noise 12"),
             22,
             "50 px lenses, 1500 e- full light and 12 e- read noise, 2 mm steps, focus at rail 50.3 mm",
+        ),
+        SweepConfig(
+            "mcsim",
+            "between-airy",
+            _args("--preset between --frames 59 --airy-wavelength-um 0.55"),
+            24,
+            "the between-end8 sweep with the microlenses' diffraction at 550 nm (f/12.5: "
+            "first zero 2.75 px, wider than the defocus over most of the sweep)",
+        ),
+        SweepConfig(
+            "mcsim",
+            "small-2mm-airy",
+            _args("--preset small --step-mm 2 --frames 50 --airy-wavelength-um 0.55"),
+            25,
+            "50 px lenses at f/15.6 with diffraction at 550 nm (first zero 3.4 px), 2 mm steps",
         ),
         SweepConfig(
             "mcsim",
