@@ -43,6 +43,7 @@ from .edge_spread import BinnedEsf
 from .focus import corner_size_mm, paper_focus
 from .mla_grid import MlaGrid
 from .parameters import Estimate, paper_estimate
+from .shading import WhiteShading
 from .summary import (
     CalibrationError,
     CalibrationOptions,
@@ -195,6 +196,28 @@ def _shading_bias(
         **shading.to_dict(),
     }
     return eta, eta_se, info
+
+
+def _rim_shading_warning(sh: WhiteShading) -> str:
+    """The warning for a white image whose curvature inside the micro-images is not angular
+    shading alone (:attr:`~calibration.shading.WhiteShading.interior_consistent` false)."""
+    seen = (
+        f"the white image's shading curves by {sh.curvature_px2:.2e} px^-2 inside the "
+        f"micro-images ({sh.inner_curvature_px2:.2e} px^-2 inside half their radius)"
+    )
+    if sh.tilt_measured:
+        return (
+            f"{seen} but the micro-images tilt across the sensor as {sh.tilt_curvature_px2:.2e} "
+            f"± {sh.tilt_curvature_se_px2:.1e} px^-2: the micro-image rims are blurred into the "
+            "interior (diffraction?); the angular shading behind the disparity's shading bias "
+            "and the pitch's rim correction is taken from the tilt"
+        )
+    return (
+        f"{seen}: the micro-image rims are blurred into the interior (diffraction?), so the "
+        "angular shading, and with it the disparity's shading bias and the pitch's rim "
+        "correction, is taken as anywhere between 0 and the measured curvature (b and L less "
+        "certain)"
+    )
 
 
 def _corner_systematic(
@@ -535,16 +558,8 @@ def combine(
         )
     priors_section, prior_warnings = _priors_section(cam, priors)
     warnings.extend(prior_warnings)
-    if grid.shading is not None and not grid.shading.radially_consistent:
-        sh = grid.shading
-        warnings.append(
-            "the white image's shading curves more over the whole micro-image interior "
-            f"({sh.curvature_px2:.2e} px^-2) than inside half its radius "
-            f"({sh.inner_curvature_px2:.2e} px^-2): the micro-image rims are blurred into the "
-            "interior (diffraction?), so the angular shading, and with it the disparity's "
-            "shading bias and the pitch's rim correction, is taken as anywhere between 0 and "
-            "the measured curvature (b and L less certain)"
-        )
+    if grid.shading is not None and not grid.shading.interior_consistent:
+        warnings.append(_rim_shading_warning(grid.shading))
     if abs(defocus.kappa - 1.0) > 0.25:
         warnings.append(
             f"the defocus blur is {defocus.kappa:.2f} times the full microlens aperture: the "

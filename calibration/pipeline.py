@@ -100,7 +100,9 @@ class FrameAnalyzer:
             lens_pitch_px=geometry.lens_pitch_px,
             principal_point_px=geometry.principal_point_px,
         )
-        shading = measure_shading(white, grid.image_grid, background=grid.background)
+        shading = measure_shading(
+            white, grid.image_grid, background=grid.background, lens_grid=grid.lens_grid
+        )
         options = options or CalibrationOptions()
         if np.isfinite(shading.plateau_fraction):
             # edge spreads only where the whole microlens aperture is seen (the white plateau)

@@ -24,6 +24,15 @@ micro-images, one value for the sensor, fitted with a free level and
 gradient per micro-image (the gradient absorbs the tilt of off-axis
 micro-images).
 
+That tilt measures ``c`` a second way (:func:`_tilt_curvature`): the paraboloid is
+centred on the lens centre ``m``, not on the micro-image centre ``c_i = m +
+β·(m - axis)``, so the gradient of ``log W`` at ``c_i`` is ``-c·(c_i - m)``, linear
+across the sensor. A micro-image rim blurred into the interior (diffraction's
+1/x² tails) bends ``log W`` symmetrically about ``c_i``: it adds curvature inside
+every micro-image (19× the rays' cos⁴ on a Monte-Carlo white image with a
+diffraction-limited microlens at f/15.6) but no tilt (the tilt gave the cos⁴ value
+within 4 %). When the two disagree, the tilt is the angular shading.
+
 The same white image says where that interior ends (:func:`measure_plateau`):
 a pixel sees its whole microlens aperture only while the aperture's footprint on
 the main lens fits inside the main aperture; beyond that radius the white image
@@ -37,7 +46,7 @@ uses only profiles inside it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,6 +63,14 @@ RADIAL_CONSISTENCY_SIGMAS = 3.0
 """The curvature measured inside half the radius must agree with the whole interior's within
 this many combined standard errors; otherwise the white image's falloff is not angular
 shading alone (see :meth:`WhiteShading.angular_curvature`)."""
+
+TILT_CONSISTENCY_SIGMAS = 3.0
+"""The curvature inside the micro-images and the one from their tilt across the sensor
+agree when within this many combined standard errors; otherwise the former is taken to be
+bent by the rims (see :meth:`WhiteShading.angular_curvature`)."""
+
+TILT_MIN_MICRO_IMAGES = 10
+"""Fewest micro-images for a curvature from their tilt."""
 
 PLATEAU_INNER_FRACTION = 0.45
 """The part of a micro-image (fraction of half its pitch) taken as lit for certain: the
@@ -88,6 +105,10 @@ class WhiteShading:
     inner_curvature_px2: float = float("nan")
     """The same curvature fitted inside half that radius (NaN: not measured)."""
     inner_curvature_se_px2: float = float("nan")
+    tilt_curvature_px2: float = float("nan")
+    """The curvature from the tilt of the micro-images across the sensor (NaN: not measured,
+    e.g. no lens grid given or too few micro-images off the axis)."""
+    tilt_curvature_se_px2: float = float("nan")
 
     @property
     def radially_consistent(self) -> bool:
@@ -98,24 +119,52 @@ class WhiteShading:
         se = float(np.hypot(self.curvature_se_px2, self.inner_curvature_se_px2))
         return abs(self.curvature_px2 - self.inner_curvature_px2) <= RADIAL_CONSISTENCY_SIGMAS * se
 
+    @property
+    def tilt_measured(self) -> bool:
+        return bool(np.isfinite(self.tilt_curvature_px2) and self.tilt_curvature_se_px2 > 0)
+
+    @property
+    def tilt_consistent(self) -> bool:
+        """Whether the curvature inside the micro-images agrees with the one from their tilt
+        (within :data:`TILT_CONSISTENCY_SIGMAS`; true when either is not measured)."""
+        if not (self.tilt_measured and np.isfinite(self.curvature_px2)):
+            return True
+        se = float(np.hypot(self.curvature_se_px2, self.tilt_curvature_se_px2))
+        return abs(self.curvature_px2 - self.tilt_curvature_px2) <= TILT_CONSISTENCY_SIGMAS * se
+
+    @property
+    def interior_consistent(self) -> bool:
+        """Whether the white image's curvature inside the micro-images is angular shading
+        alone (both checks pass); false: a rim is blurred into the interior."""
+        return self.radially_consistent and self.tilt_consistent
+
     def angular_curvature(self) -> tuple[float, float]:
         """``(c, σ)`` of the angular shading (px⁻²).
 
         The rays' angular weights make ``log W`` a paraboloid about the lens centre,
-        the same at every radius. When the curvature grows with the radius it is fitted
-        over (:attr:`radially_consistent` false), something else bends the white image
-        inside the micro-images: a rim blurred inwards, by diffraction above all (a
-        microlens at f/12 in green light spreads ~1/x² tails over the whole micro-image;
-        on a Monte-Carlo white image with that diffraction the curvature came out 7×
-        the rays' cos⁴, 4× even inside a fifth of the radius). Light taken from the
-        interior by a blurred rim only adds curvature, so the angular part lies between
-        0 and the measured value, and where in it is not known (on those white images a
-        tenth to a seventh of it): ``c/2 ± c/2``, the whole interval within one sigma.
+        the same at every radius, whose tilt across the sensor is ``c`` too. When the
+        curvature grows with the radius it is fitted over (:attr:`radially_consistent`
+        false) or differs from the tilt's (:attr:`tilt_consistent` false), something else
+        bends the white image inside the micro-images: a rim blurred inwards, by
+        diffraction above all (a microlens at f/12 in green light spreads ~1/x² tails
+        over the whole micro-image; on a Monte-Carlo white image with that diffraction
+        the curvature came out 7-19× the rays' cos⁴, 4× even inside a fifth of the
+        radius). The tilt is then the angular shading; when both agree, their weighted
+        mean. Without a tilt (no lens grid, a window too close to the axis) or one less
+        certain than that: light taken from the interior by a blurred rim only adds
+        curvature, so the angular part lies between 0 and the measured value: ``c/2 ±
+        c/2``, the whole interval within one sigma.
         """
-        if self.radially_consistent:
-            return self.curvature_px2, self.curvature_se_px2
-        c = self.curvature_px2
-        return 0.5 * c, float(np.hypot(self.curvature_se_px2, 0.5 * abs(c)))
+        c, se = self.curvature_px2, self.curvature_se_px2
+        if self.tilt_measured and self.interior_consistent and np.isfinite(c) and se > 0:
+            w, wt = 1.0 / se**2, 1.0 / self.tilt_curvature_se_px2**2
+            return (w * c + wt * self.tilt_curvature_px2) / (w + wt), float(1.0 / np.sqrt(w + wt))
+        if self.interior_consistent:
+            return c, se
+        bounded = 0.5 * c, float(np.hypot(se, 0.5 * abs(c)))
+        if self.tilt_measured and self.tilt_curvature_se_px2 < bounded[1]:
+            return self.tilt_curvature_px2, self.tilt_curvature_se_px2
+        return bounded
 
     def bias_coefficient(self, aperture_variance_px2: float) -> float:
         """``η = Var(p)·c``: the disparity reads ``Q·(1 + η·(Q - Q0))`` (``c`` the angular
@@ -130,6 +179,9 @@ class WhiteShading:
             "inner_curvature_px2": self.inner_curvature_px2,
             "inner_curvature_se_px2": self.inner_curvature_se_px2,
             "radially_consistent": self.radially_consistent,
+            "tilt_curvature_px2": self.tilt_curvature_px2,
+            "tilt_curvature_se_px2": self.tilt_curvature_se_px2,
+            "tilt_consistent": self.tilt_consistent,
             "angular_curvature_px2": c,
             "angular_curvature_se_px2": c_se,
             "micro_images": self.micro_images,
@@ -138,27 +190,39 @@ class WhiteShading:
 
 
 def measure_shading(
-    white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0
+    white: NDArray[Any],
+    image_grid: LensGrid,
+    *,
+    background: float = 0.0,
+    lens_grid: LensGrid | None = None,
 ) -> WhiteShading:
     """The curvature of ``log W`` inside the micro-images of a white image, and the radius
     of their fully lit plateau.
 
     ``image_grid`` is the fitted micro-image lattice (pixels);
-    ``background`` the dark level to subtract (counts). The curvature is fitted
-    inside ``INTERIOR_FRACTION`` of the half pitch, or inside the plateau when
-    that ends sooner.
+    ``background`` the dark level to subtract (counts); ``lens_grid`` the lens
+    centres' projections (same indices), which the curvature from the micro-images'
+    tilt needs (not measured without it). The curvature is fitted inside
+    ``INTERIOR_FRACTION`` of the half pitch, or inside the plateau when that ends
+    sooner.
     """
     plateau = measure_plateau(white, image_grid, background=background)
     fraction = INTERIOR_FRACTION if not np.isfinite(plateau) else min(INTERIOR_FRACTION, plateau)
     samples = _samples(white, image_grid, background, fraction)
     if samples is None:
         return WhiteShading(float("nan"), float("nan"), 0, plateau)
-    dx, dy, values, good, n_images = samples
+    dx, dy, values, good = samples.dx, samples.dy, samples.values, samples.good
+    n_images = samples.n_images
     rr = dx * dx + dy * dy
     curvature, se = _curvature(values, dx, dy, good, n_images)
     # the same inside half the radius: angular shading is one paraboloid at every radius
     inner_radius = 0.5 * fraction * 0.5 * image_grid.pitch_px
     inner, inner_se = _curvature(values, dx, dy, good & (rr <= inner_radius**2), n_images)
+    tilt, tilt_se = (
+        (float("nan"), float("nan"))
+        if lens_grid is None
+        else _tilt_curvature(samples, image_grid, lens_grid)
+    )
     return WhiteShading(
         curvature_px2=curvature,
         curvature_se_px2=se,
@@ -166,7 +230,53 @@ def measure_shading(
         plateau_fraction=plateau,
         inner_curvature_px2=inner,
         inner_curvature_se_px2=inner_se,
+        tilt_curvature_px2=tilt,
+        tilt_curvature_se_px2=tilt_se,
     )
+
+
+def _tilt_curvature(
+    samples: _Samples, image_grid: LensGrid, lens_grid: LensGrid
+) -> tuple[float, float]:
+    """``c`` from the tilt of the micro-images: the gradient of ``log W`` at each centre
+    ``c_i`` is ``g_0 - c·(c_i - m_i)`` (``m_i`` its lens centre; ``g_0`` a common tilt),
+    each gradient fitted with the micro-image's own level and curvature (which take
+    whatever bends it symmetrically). Least squares over both axes, one pass without the
+    micro-images beyond 5 robust sigmas (a defect, a dust shadow); its standard error
+    from the residual scatter (px⁻²; NaN when the offsets do not determine it).
+    """
+    dx, dy, good = samples.dx, samples.dy, samples.good
+    logv = np.where(good, np.log(np.maximum(samples.values, 1e-9)), 0.0)
+    coef, _ = _per_image_fit(logv, [np.ones_like(dx), dx, dy, dx * dx + dy * dy], good)
+    n = samples.n_images
+    counts = good.reshape(n, -1).sum(axis=1)
+    usable = counts >= 0.8 * np.max(counts, initial=0) if n else np.zeros(0, dtype=bool)
+    cx, cy = image_grid.centre(samples.ii, samples.jj)
+    mx, my = lens_grid.centre(samples.ii, samples.jj)
+    gradient = np.concatenate([coef[:, 1, 0], coef[:, 2, 0]])
+    offset = np.concatenate([cx - mx, cy - my])
+    axis = np.repeat([0, 1], n)
+    use = np.concatenate([usable, usable])
+    c, se = float("nan"), float("nan")
+    for _ in range(2):
+        if use.sum() < 2 * TILT_MIN_MICRO_IMAGES:
+            return float("nan"), float("nan")
+        g_dev = gradient.copy()
+        d_dev = offset.copy()
+        for k in (0, 1):  # the common tilt g_0, per axis
+            on = use & (axis == k)
+            g_dev[axis == k] -= gradient[on].mean()
+            d_dev[axis == k] -= offset[on].mean()
+        sdd = float(np.sum(d_dev[use] ** 2))
+        if sdd <= 1e-6 * use.sum():  # offsets under a milli-pixel: no tilt to see
+            return float("nan"), float("nan")
+        c = -float(np.sum(g_dev[use] * d_dev[use])) / sdd
+        resid = g_dev + c * d_dev
+        dof = max(1, int(use.sum()) - 3)
+        se = float(np.sqrt(np.sum(resid[use] ** 2) / dof / sdd))
+        robust = 1.4826 * float(np.median(np.abs(resid[use])))
+        use &= np.abs(resid) <= 5.0 * max(robust, 1e-12)
+    return c, se
 
 
 def _curvature(
@@ -213,7 +323,7 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     )
     if samples is None:
         return float("nan")
-    dx, dy, values, good, _ = samples
+    dx, dy, values, good = samples.dx, samples.dy, samples.values, samples.good
     half = 0.5 * image_grid.pitch_px
     rr = dx * dx + dy * dy
     inner = good & (rr <= (PLATEAU_INNER_FRACTION * half) ** 2)
@@ -242,6 +352,23 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     return PLATEAU_MAX_FRACTION
 
 
+class _Samples(NamedTuple):
+    """White-image pixels of some micro-images, arrays ``(micro-image, row, column)``:
+    offsets from the micro-image centre (px), values (background subtracted), the usable
+    mask; and the micro-images' lattice indices."""
+
+    dx: NDArray[np.float64]
+    dy: NDArray[np.float64]
+    values: NDArray[np.float64]
+    good: NDArray[np.bool_]
+    ii: NDArray[np.int64]
+    jj: NDArray[np.int64]
+
+    @property
+    def n_images(self) -> int:
+        return int(self.ii.size)
+
+
 def _samples(
     white: NDArray[Any],
     image_grid: LensGrid,
@@ -249,12 +376,9 @@ def _samples(
     fraction: float,
     *,
     max_images: int = MAX_MICRO_IMAGES,
-) -> (
-    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], int]
-    | None
-):
+) -> _Samples | None:
     """Pixels within ``fraction`` of half the pitch of up to ``max_images`` lit
-    micro-images: offsets from their centres, values, the usable mask, the count."""
+    micro-images (evenly spread over the sensor)."""
     img = np.asarray(white, dtype=np.float64) - background
     h, w = img.shape
     pitch = image_grid.pitch_px
@@ -280,7 +404,7 @@ def _samples(
     level = np.nanmedian(np.where(core, values, np.nan).reshape(ii.size, -1), axis=1)
     lit = level > 0.2 * np.nanmax(level)
     good = inside & (values > 0.3 * level[:, None, None]) & lit[:, None, None]
-    return dx, dy, values, good, int(ii.size)
+    return _Samples(dx, dy, values, good, ii, jj)
 
 
 def _per_image_fit(

@@ -19,10 +19,15 @@ PITCH_PX = 60.0
 SCALE = 1.05  # micro-image centres lie (L+b)/L farther from the principal point
 
 
+def _lens_grid(h: int = 600, w: int = 900) -> LensGrid:
+    pp = ((w - 1) / 2, (h - 1) / 2)
+    return LensGrid((pp[0] + 3.2, pp[1] - 1.7), PITCH_PX, np.radians(0.3))
+
+
 def _white(curvature: float, seed: int = 0, noise: float = 0.005) -> tuple[np.ndarray, LensGrid]:
     h, w = 600, 900
     pp = ((w - 1) / 2, (h - 1) / 2)
-    lens = LensGrid((pp[0] + 3.2, pp[1] - 1.7), PITCH_PX, np.radians(0.3))
+    lens = _lens_grid(h, w)
     image = lens.scaled_about(pp, SCALE)
     ys, xs = np.mgrid[0:h, 0:w].astype(float)
     i, j = image.nearest(xs, ys)
@@ -45,6 +50,17 @@ def test_the_curvature_of_the_shading_is_measured(curvature: float) -> None:
         curvature, abs=max(3 * found.curvature_se_px2, 2e-7)
     )
     assert found.curvature_se_px2 < 5e-7
+    assert not found.tilt_measured  # no lens grid given
+    tilted = measure_shading(white, image, background=40.0, lens_grid=_lens_grid())
+    # the micro-images' tilt across the sensor measures the same curvature
+    assert tilted.tilt_curvature_px2 == pytest.approx(
+        curvature, abs=3 * tilted.tilt_curvature_se_px2
+    )
+    assert tilted.tilt_curvature_se_px2 < 5e-7
+    assert tilted.tilt_consistent and tilted.interior_consistent
+    c, se = tilted.angular_curvature()  # both, weighted
+    assert min(found.curvature_se_px2, tilted.tilt_curvature_se_px2) > se
+    assert c == pytest.approx(curvature, abs=3 * se)
 
 
 def test_the_bias_coefficient_is_the_aperture_variance_times_the_curvature() -> None:
@@ -109,3 +125,29 @@ def test_a_rim_blurred_into_the_interior_is_not_taken_for_angular_shading() -> N
     c, se = found.angular_curvature()
     assert abs(c - curvature) <= se  # the true angular curvature is covered
     assert found.to_dict()["radially_consistent"] is False
+
+
+def test_the_tilt_of_the_micro_images_separates_angular_shading_from_a_blurred_rim() -> None:
+    """A rim blurred into the interior bends log W symmetrically about each micro-image's
+    centre; the angular shading is centred on the lens centre, so it also tilts the
+    off-axis micro-images, by ``-c·(c_i - m_i)``: that tilt is the angular curvature."""
+    curvature = 3e-6
+    white, image = _white(curvature, seed=4, noise=0.002)
+    blurred = _diffraction_blurred(white - 40.0, 2.5) + 40.0
+    found = measure_shading(blurred, image, background=40.0, lens_grid=_lens_grid())
+    assert found.curvature_px2 > 3 * curvature
+    assert found.tilt_measured and not found.tilt_consistent and not found.interior_consistent
+    c, se = found.angular_curvature()
+    assert (c, se) == (found.tilt_curvature_px2, found.tilt_curvature_se_px2)
+    assert c == pytest.approx(curvature, abs=max(3 * se, 1e-7))
+    assert se < 0.1 * curvature  # far tighter than the c/2 ± c/2 of the curvature alone
+    assert found.to_dict()["tilt_consistent"] is False
+
+
+def test_without_off_axis_micro_images_there_is_no_tilt() -> None:
+    """Micro-images whose centres are their lenses' (no offset: an image-space telecentric
+    camera, or a window on the axis) do not determine the tilt."""
+    white, image = _white(3e-6, seed=5)
+    found = measure_shading(white, image, background=40.0, lens_grid=image)
+    assert not found.tilt_measured
+    assert found.angular_curvature() == (found.curvature_px2, found.curvature_se_px2)
