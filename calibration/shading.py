@@ -211,17 +211,18 @@ def measure_shading(
     samples = _samples(white, image_grid, background, fraction)
     if samples is None:
         return WhiteShading(float("nan"), float("nan"), 0, plateau)
-    dx, dy, values, good = samples.dx, samples.dy, samples.values, samples.good
+    dx, dy, good = samples.dx, samples.dy, samples.good
     n_images = samples.n_images
+    logv = samples.log_values()
     rr = dx * dx + dy * dy
-    curvature, se = _curvature(values, dx, dy, good, n_images)
+    curvature, se = _curvature(logv, dx, dy, good, n_images)
     # the same inside half the radius: angular shading is one paraboloid at every radius
     inner_radius = 0.5 * fraction * 0.5 * image_grid.pitch_px
-    inner, inner_se = _curvature(values, dx, dy, good & (rr <= inner_radius**2), n_images)
+    inner, inner_se = _curvature(logv, dx, dy, good & (rr <= inner_radius**2), n_images)
     tilt, tilt_se = (
         (float("nan"), float("nan"))
         if lens_grid is None
-        else _tilt_curvature(samples, image_grid, lens_grid)
+        else _tilt_curvature(samples, logv, image_grid, lens_grid)
     )
     return WhiteShading(
         curvature_px2=curvature,
@@ -236,7 +237,7 @@ def measure_shading(
 
 
 def _tilt_curvature(
-    samples: _Samples, image_grid: LensGrid, lens_grid: LensGrid
+    samples: _Samples, logv: NDArray[np.float64], image_grid: LensGrid, lens_grid: LensGrid
 ) -> tuple[float, float]:
     """``c`` from the tilt of the micro-images: the gradient of ``log W`` at each centre
     ``c_i`` is ``g_0 - c·(c_i - m_i)`` (``m_i`` its lens centre; ``g_0`` a common tilt),
@@ -246,18 +247,16 @@ def _tilt_curvature(
     from the residual scatter (px⁻²; NaN when the offsets do not determine it).
     """
     dx, dy, good = samples.dx, samples.dy, samples.good
-    logv = np.where(good, np.log(np.maximum(samples.values, 1e-9)), 0.0)
     coef, _ = _per_image_fit(logv, [np.ones_like(dx), dx, dy, dx * dx + dy * dy], good)
     n = samples.n_images
     counts = good.reshape(n, -1).sum(axis=1)
-    usable = counts >= 0.8 * np.max(counts, initial=0) if n else np.zeros(0, dtype=bool)
+    usable = counts >= 0.8 * np.max(counts, initial=0)
     cx, cy = image_grid.centre(samples.ii, samples.jj)
     mx, my = lens_grid.centre(samples.ii, samples.jj)
     gradient = np.concatenate([coef[:, 1, 0], coef[:, 2, 0]])
     offset = np.concatenate([cx - mx, cy - my])
     axis = np.repeat([0, 1], n)
     use = np.concatenate([usable, usable])
-    c, se = float("nan"), float("nan")
     for _ in range(2):
         if use.sum() < 2 * TILT_MIN_MICRO_IMAGES:
             return float("nan"), float("nan")
@@ -280,7 +279,7 @@ def _tilt_curvature(
 
 
 def _curvature(
-    values: NDArray[np.float64],
+    logv: NDArray[np.float64],
     dx: NDArray[np.float64],
     dy: NDArray[np.float64],
     good: NDArray[np.bool_],
@@ -288,8 +287,8 @@ def _curvature(
 ) -> tuple[float, float]:
     """``c`` of ``log W ≈ level + gradient·(dx, dy) - (c/2)·(dx² + dy²)`` with a level and a
     gradient per micro-image (fixed effects) and one ``c`` for all, over the ``good``
-    pixels; and its standard error (px⁻²; NaN when the pixels do not determine it)."""
-    logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
+    pixels (``logv``: ``log W``, read only there); and its standard error (px⁻²; NaN when
+    the pixels do not determine it)."""
     rr = dx * dx + dy * dy
     regs = [np.ones_like(dx), dx, dy]
     y = _residual_after(logv, regs, good)
@@ -323,13 +322,13 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     )
     if samples is None:
         return float("nan")
-    dx, dy, values, good = samples.dx, samples.dy, samples.values, samples.good
+    dx, dy, good = samples.dx, samples.dy, samples.good
     half = 0.5 * image_grid.pitch_px
     rr = dx * dx + dy * dy
     inner = good & (rr <= (PLATEAU_INNER_FRACTION * half) ** 2)
-    logv = np.where(good, np.log(np.maximum(values, 1e-9)), 0.0)
+    logv = samples.log_values()
     regs = [np.ones_like(dx), dx, dy, rr]
-    n = values.shape[0]
+    n = samples.n_images
     coef, _ = _per_image_fit(logv, regs, inner)
     full = np.stack([r.reshape(n, -1) for r in regs], axis=2)
     ratio = np.exp(logv.reshape(n, -1) - (full @ coef)[:, :, 0])
@@ -367,6 +366,10 @@ class _Samples(NamedTuple):
     @property
     def n_images(self) -> int:
         return int(self.ii.size)
+
+    def log_values(self) -> NDArray[np.float64]:
+        """``log W`` on the usable pixels, 0 elsewhere."""
+        return np.where(self.good, np.log(np.maximum(self.values, 1e-9)), 0.0)
 
 
 def _samples(
