@@ -1,0 +1,336 @@
+"""The numerical core of the whole-sweep defocus fit: the kernels and the linear sub-problems.
+
+:mod:`calibration.defocus` fits the focus plane with it (see there for the model).
+Here are the closed-form integrals of the defocus kernels (a box, a uniform disk and
+their mixture), the stacked edge-spread data of every observation and
+:class:`DefocusProblem`: for given ``(Q0, κ, α)`` the static kernel and each
+observation's offset, gain and shift by (non-negative, regularised) least squares, the
+weighted residuals, the re-weighting by each observation's reduced chi-square and the
+nonlinear least squares over ``(Q0, κ, α)`` with its curvature and cluster-robust
+covariances. Positions in pixels along the edge normal, ``Q`` dimensionless.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares, nnls
+
+from .edge_spread import ESF_BIN_PX, BinnedEsf
+
+STATIC_STEP_PX = 0.05
+"""Spacing of the static kernel's point masses (pixels)."""
+
+FIT_HALF_PX = 4.5
+"""Only bins within this distance of the edge are fitted (pixels)."""
+
+STATIC_HALF_PX = FIT_HALF_PX + 1.5
+"""Half width of the static kernel (pixels); mass beyond it goes into the offsets. It
+reaches past the fitted window: a diffraction-limited microlens (a square aperture at
+f/12.5 in green light has its first zero at λN = 2.75 px of 2.5 µm) spreads light into
+lobes and 1/x² tails that cross the whole window, and a kernel cut at 3 px left them to
+the per-frame offset and gain, which cannot take their shape: on exact functions Q0 came
+out 0.67 % low, on a Monte-Carlo sweep with that diffraction 12 % off with κ = 0.5
+(tests/test_defocus.py); with the kernel 1.5 px past the window it is exact again."""
+
+MODEL_FLOOR = 5e-4
+"""Added in quadrature to every bin's standard error (fraction of the edge contrast): the
+model's limit (thin lenses, a uniform aperture); keeps a few noiseless bins from ruling."""
+
+SMOOTHNESS = 1e-7
+"""Weight of the second-difference penalty on the static kernel (relative to the data)."""
+
+KAPPA_MAX = 1.0
+"""Upper bound of the aperture's RMS scale ``κ``: the square cell of side ``D``
+(:mod:`calibration.defocus`)."""
+
+
+@dataclass(frozen=True)
+class EdgeObservation:
+    """One corner in one frame: its measured ``Q`` and edge-spread function."""
+
+    frame: int
+    corner: str
+    Q: float
+    esf: BinnedEsf
+
+
+def _box_integral(t: NDArray[np.floating], d: NDArray[np.floating]) -> NDArray[np.float64]:
+    """``∫_{-∞}^{t} C(τ) dτ`` of the cumulative line-spread ``C`` of a box of width ``d``."""
+    dd = np.maximum(d, 1e-9)
+    inside = np.clip(t + 0.5 * dd, 0.0, dd)
+    return np.where(t > 0.5 * dd, t, inside * inside / (2.0 * dd))
+
+
+def _disk_integral(t: NDArray[np.floating], d: NDArray[np.floating]) -> NDArray[np.float64]:
+    """``∫_{-∞}^{t} C(τ) dτ`` of the cumulative line-spread of a uniform disk of diameter ``d``.
+
+    With ``u = 2t/d``: ``C = ½ + (u√(1-u²) + asin u)/π`` and its integral is
+    ``(d/2)·[u/2 + (u·asin u + √(1-u²))/π - (1-u²)^{3/2}/(3π)]``: 0 below the
+    disk, ``t`` above it; the special functions are evaluated only inside.
+    """
+    t, dd = np.broadcast_arrays(t, np.maximum(d, 1e-9))
+    out = np.where(t >= 0.5 * dd, t, 0.0).astype(np.float64)
+    inside = np.abs(t) < 0.5 * dd
+    u = 2.0 * t[inside] / dd[inside]
+    root = np.sqrt(1.0 - u * u)
+    j = 0.5 * u + (u * np.arcsin(u) + root) / np.pi - root**3 / (3.0 * np.pi)
+    out[inside] = 0.5 * dd[inside] * j
+    return out
+
+
+def _aperture_integral(
+    t: NDArray[np.floating], d: NDArray[np.floating], alpha: float
+) -> NDArray[np.float64]:
+    """``∫C`` of the aperture's line spread at diameter ``d``: box (``α``) and disk mixture."""
+    out = alpha * _box_integral(t, d) if alpha > 0.0 else np.zeros(np.broadcast(t, d).shape)
+    if alpha < 1.0:
+        out = out + (1.0 - alpha) * _disk_integral(t, d)
+    return np.asarray(out, dtype=np.float64)
+
+
+def _nonnegative_solve(lhs: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``argmin sᵀ·lhs·s - 2 rhsᵀ·s`` over ``s >= 0`` (NNLS on the Cholesky factor)."""
+    try:
+        upper = np.linalg.cholesky(lhs).T
+    except np.linalg.LinAlgError:
+        upper = np.linalg.cholesky(lhs + 1e-9 * np.trace(lhs) * np.eye(lhs.shape[0])).T
+    target = np.linalg.solve(upper.T, rhs)
+    s, _ = nnls(upper, target, maxiter=50 * lhs.shape[0])
+    return s
+
+
+JITTER_NEGLIGIBLE_PX = 0.01
+"""Placement jitter (px) below which an observation's model is not averaged over it (its
+variance, 1e-4 px², is far below what the defocus fit resolves)."""
+
+_HERMITE_NODES, _HERMITE_WEIGHTS = np.polynomial.hermite_e.hermegauss(5)
+_JITTER_NODES = (_HERMITE_NODES, _HERMITE_WEIGHTS / np.sum(_HERMITE_WEIGHTS))
+"""Gauss-Hermite nodes and weights of the standard normal: the average over the placement
+jitter of an observation (:attr:`BinnedEsf.jitter_px`)."""
+
+
+def diameter_factor(kappa: float, alpha: float) -> float:
+    """Aperture diameter factor for RMS scale ``κ`` and shape ``α``.
+
+    ``κ`` scales the kernel's RMS width to that of a box of diameter ``κ·d``
+    whatever the shape, so ``κ`` and ``α`` are nearly uncorrelated: a box of
+    width ``d`` has variance ``d²/12``, a uniform disk's projection ``d²/16``.
+    """
+    return kappa * float(np.sqrt((1.0 / 12.0) / (alpha / 12.0 + (1.0 - alpha) / 16.0)))
+
+
+class DefocusProblem:
+    """The stacked data of every observation and the linear sub-problems.
+
+    The static kernel is a set of point masses at ``g_i = i·STATIC_STEP_PX``
+    (mirrored: it is symmetric). Each bin of the data is the mean of samples
+    spread about its mean position ``x̄`` with standard deviation ``σ``; the
+    model of a bin is the function averaged over the uniform interval of the
+    same mean and spread, ``x̄ ± w`` with ``w = √3·σ`` (a point value when the
+    profiles share one sub-pixel phase, the bin average when their phases
+    cover it). For the mass at ``±g`` that is ``[IC(x̄+w∓g) - IC(x̄-w∓g)]/(2w)``
+    with ``IC`` the integral of the defocus kernel's cumulative line spread,
+    tabulated per observation on a fine lattice and interpolated.
+    """
+
+    LATTICE_PX = 0.005
+
+    def __init__(self, obs: Sequence[EdgeObservation], lens_pitch_px: float) -> None:
+        self.obs = list(obs)
+        self.pitch = lens_pitch_px
+        h = STATIC_STEP_PX
+        n_bins = int(round(2 * FIT_HALF_PX / ESF_BIN_PX))
+        n_cells = int(round(STATIC_HALF_PX / h)) + 1
+        self.grid = np.arange(n_cells) * h
+        n = len(self.obs)
+        self.v = np.zeros((n, n_bins))
+        self.w = np.zeros((n, n_bins))  # sqrt of the weights; 0 where a bin is empty
+        xbar = np.tile(-FIT_HALF_PX + (np.arange(n_bins) + 0.5) * ESF_BIN_PX, (n, 1))
+        half = np.full((n, n_bins), 0.5 * ESF_BIN_PX)
+        for k, o in enumerate(self.obs):
+            b = np.floor((o.esf.x + FIT_HALF_PX) / ESF_BIN_PX).astype(np.int64)
+            inside = (b >= 0) & (b < n_bins)
+            bi = b[inside]
+            self.v[k, bi] = o.esf.value[inside]
+            se = np.hypot(o.esf.se[inside], MODEL_FLOOR)
+            self.w[k, bi] = 1.0 / se
+            xbar[k, bi] = o.esf.x[inside]
+            half[k, bi] = np.sqrt(3.0) * o.esf.position_sd_px[inside]
+        half = np.maximum(half, 2 * self.LATTICE_PX)
+        self.w_data = self.w.copy()
+        self.xbar = xbar
+        self._extra = np.zeros_like(xbar)
+        self.q = np.array([o.Q for o in self.obs])
+        self.jitter = np.array([o.esf.jitter_px for o in self.obs])
+        self.frame = np.array([o.frame for o in self.obs])
+        # the four interval ends of every (observation, bin, mass), as fine-lattice positions
+        g = self.grid[None, None, :]
+        xb, wb = xbar[:, :, None], half[:, :, None]
+        self.start = -FIT_HALF_PX - STATIC_HALF_PX - 1.0
+        ends = (xb + wb - g, xb - wb - g, xb + wb + g, xb - wb + g)
+        self.n_lattice = (
+            int(np.ceil(2 * (FIT_HALF_PX + STATIC_HALF_PX + 1.0) / self.LATTICE_PX)) + 2
+        )
+        row_start = (np.arange(n) * self.n_lattice)[:, None, None]
+        self.index, self.frac = [], []
+        for e in ends:
+            t = (e - self.start) / self.LATTICE_PX
+            j = np.floor(t)
+            self.index.append((row_start + j).astype(np.int32).ravel())
+            self.frac.append((t - j).ravel().astype(np.float32))
+        self.shape = (n, n_bins, n_cells)
+        self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
+        self.norm = (4.0 * half)[:, :, None].astype(np.float32)  # 2w (bin average) x 2 (mirror)
+        second = np.zeros((n_cells - 2, n_cells))
+        for r in range(n_cells - 2):
+            second[r, r : r + 3] = (1.0, -2.0, 1.0)
+        self.penalty = second.T @ second
+        self.data_scale = float(np.mean(np.sum(self.w**2, axis=1)))
+
+    def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``."""
+        q0, kappa, alpha = theta
+        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
+        t = self.lattice[None, :]
+        integral = _aperture_integral(t, d[:, None], alpha)
+        # the placement jitter of an observation: a Gauss-Hermite average over it (only where
+        # it is not negligible against the lattice)
+        jittered = np.flatnonzero(self.jitter > JITTER_NEGLIGIBLE_PX)
+        if jittered.size:
+            dj = d[jittered, None]
+            smooth = np.zeros((jittered.size, self.lattice.size))
+            for node, weight in zip(*_JITTER_NODES, strict=True):
+                smooth += weight * _aperture_integral(
+                    t + node * self.jitter[jittered, None], dj, alpha
+                )
+            integral[jittered] = smooth
+        if rows.size != self.shape[0]:
+            raise ValueError("the design is built for every observation at once")
+        flat = integral.ravel().astype(np.float32)
+        out = np.zeros(self.index[0].size, dtype=np.float32)
+        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), self.index, self.frac, strict=True):
+            lo = flat.take(j)
+            hi = flat.take(j + 1)
+            hi -= lo
+            hi *= f
+            hi += lo
+            if sign > 0:
+                out += hi
+            else:
+                out -= hi
+        return (out.reshape(self.shape) / self.norm).astype(np.float64)
+
+    def solve_linear(
+        self, a: NDArray[np.float64], rows: NDArray[np.int64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Static weights ``s`` and, per observation, offset, gain and shift.
+
+        Alternating (3 rounds): ``s`` by non-negative least squares given the
+        rest, then per observation a small weighted least squares for its
+        offset, gain and the coefficient of ``E'(x)``: a shift of the whole
+        function (its samples are placed by the corner lattice, whose common
+        error moves them all alike, :mod:`calibration.edge_profiles`). Returns
+        ``s``, ``offset`` and ``gain``; the shift's part of the model is kept in
+        ``_extra``.
+        """
+        w2 = self.w[rows] ** 2
+        v = self.v[rows]
+        aw = a * w2[:, :, None]
+        gram = np.matmul(a.transpose(0, 2, 1), aw)
+        atv = np.einsum("kbi,kb->ki", aw, v)
+        n_obs = rows.size
+        lam = SMOOTHNESS * self.data_scale * n_obs
+        coef = np.zeros((n_obs, 3))
+        coef[:, 1] = 1.0
+        extra = np.zeros_like(v)  # the shift's contribution to the model
+        s = np.zeros(self.grid.size)
+        x = self.xbar[rows]
+        for _ in range(3):
+            offset, gain = coef[:, 0], coef[:, 1]
+            # s given the per-observation terms: normal equations and a sum-to-one row
+            lhs = np.einsum("k,kij->ij", gain * gain, gram) + lam * self.penalty
+            resid = offset[:, None] + extra
+            rhs = (gain[:, None] * (atv - np.einsum("kbi,kb->ki", aw, resid))).sum(axis=0)
+            big = 1e3 * float(np.trace(lhs)) / lhs.shape[0]
+            s = _nonnegative_solve(lhs + big, rhs + big)
+            # per observation: offset, gain and shift by weighted least squares
+            e = a @ s
+            columns = [np.ones_like(e), e, np.gradient(e, axis=1) / np.gradient(x, axis=1)]
+            design = np.stack(columns, axis=2)  # (n_obs, n_bins, n_coef)
+            dw = design * w2[:, :, None]
+            normal = np.matmul(design.transpose(0, 2, 1), dw)
+            normal += (
+                1e-12
+                * np.eye(normal.shape[1])[None]
+                * np.trace(normal, axis1=1, axis2=2)[:, None, None]
+            )
+            coef = np.linalg.solve(normal, np.einsum("kbc,kb->kc", dw, v)[:, :, None])[:, :, 0]
+            extra = np.einsum("kbc,kc->kb", design[:, :, 2:], coef[:, 2:])
+        self._extra = extra
+        return s, coef[:, 0], coef[:, 1]
+
+    def downweight(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> None:
+        """Each observation's errors scaled by its own reduced chi-square at ``theta`` (when
+        above one): a frame the model describes worse than its noise (placement it cannot
+        resolve, a sharp point-sampled edge, a defect) weighs accordingly less."""
+        self.w = self.w_data.copy()
+        z = self.residuals(theta, rows).reshape(self.w.shape)
+        filled = np.maximum(np.count_nonzero(self.w, axis=1), 1)
+        chi2 = np.sum(z * z, axis=1) / filled
+        self.w = self.w_data / np.sqrt(np.maximum(chi2, 1.0))[:, None]
+
+    def residuals(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
+        a = self.design(theta, rows)
+        s, offset, gain = self.solve_linear(a, rows)
+        model = offset[:, None] + gain[:, None] * (a @ s) + self._extra
+        return ((self.v[rows] - model) * self.w[rows]).ravel()
+
+    def fit(
+        self,
+        theta0: NDArray[np.float64],
+        rows: NDArray[np.int64],
+        q_bounds: tuple[float, float],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+        """Least squares over ``(Q0, κ, α)``.
+
+        Returns ``theta``, its covariance from the curvature (scaled by the
+        reduced chi² when above 1), its cluster-robust (sandwich) covariance
+        with the frames as clusters, and the reduced chi².
+        """
+        lower = [q_bounds[0], 0.2, 0.0]
+        upper = [q_bounds[1], KAPPA_MAX, 1.0]
+        fit = least_squares(
+            lambda t: self.residuals(t, rows),
+            np.clip(theta0, np.array(lower) + 1e-9, np.array(upper) - 1e-9),
+            bounds=(lower, upper),
+            x_scale=[1e-4, 0.05, 0.1],
+            diff_step=[1e-6, 1e-4, 1e-3],
+            ftol=1e-6,
+            xtol=1e-6,
+        )
+        self.nfev = fit.nfev
+        n_params = 3 + self.grid.size + 2 * rows.size
+        dof = max(1, int(np.count_nonzero(self.w[rows])) - n_params)
+        chi2 = float(np.sum(fit.fun**2) / dof)
+        jac = fit.jac
+        try:
+            bread = np.linalg.inv(jac.T @ jac)
+        except np.linalg.LinAlgError:
+            inf = np.full((3, 3), np.inf)
+            return fit.x, inf, inf, chi2
+        cov = bread * max(chi2, 1.0)
+        # sandwich: the residuals of one frame share its normalisation and noise
+        n_bins = self.w.shape[1]
+        score = (jac * fit.fun[:, None]).reshape(rows.size, n_bins, 3).sum(axis=1)
+        frames = self.frame[rows]
+        clusters = np.unique(frames)
+        per = np.zeros((clusters.size, 3))
+        np.add.at(per, np.searchsorted(clusters, frames), score)
+        g = clusters.size
+        meat = per.T @ per * (g / max(g - 1, 1))
+        robust = bread @ meat @ bread
+        return fit.x, cov, robust, chi2
