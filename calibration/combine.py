@@ -37,6 +37,8 @@ from .defocus import (
     DefocusNotDetermined,
     EdgeObservation,
     fit_defocus,
+    jackknife_defocus,
+    jackknife_warning,
     rough_focus,
 )
 from .edge_spread import BinnedEsf
@@ -360,6 +362,10 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
         "Q0_se_curvature": d.Q0_se_curvature,
         "Q0_se_cluster": d.Q0_se_cluster,
         "Q0_se_systematic": d.Q0_se_systematic,
+        "Q0_se_model": d.Q0_se_model,
+        "Q0_se_jackknife": d.Q0_se_jackknife,
+        "jackknife_Q0": list(d.jackknife_Q0),
+        "jackknife_consistent": d.jackknife_consistent,
         "aperture_scale": d.kappa,
         "aperture_shape_box": d.shape_box,
         "chi2_reduced": d.chi2_reduced,
@@ -505,6 +511,12 @@ def combine(
         if float(np.max(np.abs(q_refined - q_model))) <= REFIT_FRACTION * defocus.Q0_se:
             break
         q_model, start = q_refined, defocus
+    # the jackknife over blocks of the sweep: the larger uncertainty of Q0 goes into the camera
+    jackknifed = jackknife_defocus(on_camera, defocus, lens_pitch_px=g.lens_pitch_px)
+    if jackknifed.Q0_se > defocus.Q0_se:
+        focus = (jackknifed.Q0, jackknifed.Q0_se, jackknifed.kappa)
+        cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
+    defocus = jackknifed
     priors = g.priors()
     corner_spread = _corner_systematic(frames, measurements, priors, cam)
     values, se = cam.values, cam.uncertainty
@@ -567,6 +579,9 @@ def combine(
     warnings.extend(prior_warnings)
     if grid.shading is not None and not grid.shading.interior_consistent:
         warnings.append(_rim_shading_warning(grid.shading))
+    jackknife_note = jackknife_warning(defocus, g.lens_pitch_px)
+    if jackknife_note:
+        warnings.append(jackknife_note)
     if defocus.kappa < KAPPA_PLAUSIBLE_MIN:
         warnings.append(
             f"the defocus blur is {defocus.kappa:.2f} times the full microlens aperture, less "

@@ -162,6 +162,7 @@ class DefocusProblem:
             half[k, bi] = np.sqrt(3.0) * o.esf.position_sd_px[inside]
         half = np.maximum(half, 2 * self.LATTICE_PX)
         self.w_data = self.w.copy()
+        self.noise_scale = np.ones(n)  # each observation's errors are scaled by this
         self.xbar = xbar
         self._extra = np.zeros_like(xbar)
         self.q = np.array([o.Q for o in self.obs])
@@ -277,11 +278,16 @@ class DefocusProblem:
         """Each observation's errors scaled by its own reduced chi-square at ``theta`` (when
         above one): a frame the model describes worse than its noise (placement it cannot
         resolve, a sharp point-sampled edge, a defect) weighs accordingly less."""
-        self.w = self.w_data.copy()
+        self.scale_noise(np.ones(self.w.shape[0]))
         z = self.residuals(theta, rows).reshape(self.w.shape)
         filled = np.maximum(np.count_nonzero(self.w, axis=1), 1)
         chi2 = np.sum(z * z, axis=1) / filled
-        self.w = self.w_data / np.sqrt(np.maximum(chi2, 1.0))[:, None]
+        self.scale_noise(np.sqrt(np.maximum(chi2, 1.0)))
+
+    def scale_noise(self, scale: NDArray[np.float64]) -> None:
+        """Each observation's standard errors multiplied by ``scale`` (one per observation)."""
+        self.noise_scale = np.asarray(scale, dtype=np.float64)
+        self.w = self.w_data / self.noise_scale[:, None]
 
     def residuals(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
         a = self.design(theta, rows)
