@@ -43,6 +43,7 @@ from .defocus import (
 )
 from .edge_spread import BinnedEsf
 from .focus import corner_size_mm, paper_focus
+from .main_image import lever_arm_inverse_magnification
 from .mla_grid import MlaGrid
 from .parameters import Estimate, paper_estimate
 from .shading import WhiteShading
@@ -130,6 +131,76 @@ def _inverse_magnification(
         inv[k] = 2.0 * g.board.square_mm / (dist * g.pixel_pitch_mm)
         se[k] = inv[k] * dist_se / dist
     return inv, se
+
+
+def _magnification_on_camera(
+    cam: CameraModelFit,
+    frames: list[FrameSummary],
+    rails: NDArray[np.float64],
+    grid: MlaGrid,
+    g: SweepGeometry,
+    *,
+    shading_bias: float = 0.5,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``1/M`` per frame from main images placed with the camera's ``Q(u)``.
+
+    The micro-image positions follow the disparity's ``Q``, which the camera reads as
+    ``Q·(1 + η·(Q - Q0))`` when the bias is the angular shading's pull about the lens
+    centres, or the camera's own ``Q`` when it is not (an independent renderer's sweep
+    needs the latter, our simulator's the former). ``shading_bias`` is the fraction of
+    the bias applied (0.5: the midpoint; :func:`_main_image_systematic` takes the two
+    ends); the camera's ``Q`` uncertainty goes through the lever arms
+    (:mod:`calibration.main_image`).
+    """
+    q, q_se = cam.q_at_rail(rails)
+    bias = q * cam.values["eta"] * (q - cam.values["Q0"])
+    return lever_arm_inverse_magnification(
+        [fs.corners for fs in frames],
+        grid.lens_grid,
+        q=q + shading_bias * bias,
+        q_se=q_se,
+        square_mm=g.board.square_mm,
+        pixel_pitch_mm=g.pixel_pitch_mm,
+    )
+
+
+def _main_image_systematic(
+    frames: list[FrameSummary],
+    measurements: SweepMeasurements,
+    priors: Priors,
+    cam: CameraModelFit,
+    grid: MlaGrid,
+    g: SweepGeometry,
+) -> dict[str, float]:
+    """Half the difference between the cameras whose main images were placed with and
+    without the disparity's shading bias (:func:`_magnification_on_camera`): which of
+    the two the micro-image positions follow depends on how the image was formed, and
+    it moves every frame's ``1/M`` coherently (F and the rail zero), which no per-frame
+    error describes. Added in quadrature to every quantity; empty without magnification.
+    """
+    if not np.isfinite(measurements.inv_magnification).any():
+        return {}
+    fits = []
+    for fraction in (0.0, 1.0):
+        inv_m, inv_m_se = _magnification_on_camera(
+            cam, frames, measurements.rail_mm, grid, g, shading_bias=fraction
+        )
+        try:
+            fits.append(
+                fit_camera_model(
+                    replace(measurements, inv_magnification=inv_m, inv_magnification_se=inv_m_se),
+                    priors,
+                )
+            )
+        except ModelError:
+            return {}
+    spread = {}
+    for key in cam.values:
+        half = 0.5 * abs(fits[0].values[key] - fits[1].values[key])
+        if math.isfinite(half):
+            spread[key] = half
+            cam.uncertainty[key] = float(math.hypot(cam.uncertainty[key], half))
+    return spread
 
 
 def _corner_agreement(frames: list[FrameSummary]) -> dict[str, Any]:
@@ -498,6 +569,10 @@ def combine(
         _defocus_or_raise(observations, g, partial)  # says why the blur cannot be fitted
     cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
     rails = np.array([fs.rail_mm for fs in frames])
+    if n_ref:
+        # the main images again with the camera's Q(u), not each corner's own (main_image)
+        inv_m, inv_m_se = _magnification_on_camera(cam, frames, rails, grid, g)
+        cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
     q_model, _ = cam.q_at_rail(rails)
     # the first camera's Q(u) rests on the rough Q0, which leaves the data sheet some say: a
     # second round, from the first defocus fit, when the camera with its Q0 moved Q(u)
@@ -519,6 +594,7 @@ def combine(
     defocus = jackknifed
     priors = g.priors()
     corner_spread = _corner_systematic(frames, measurements, priors, cam)
+    main_image_spread = _main_image_systematic(frames, measurements, priors, cam, grid, g)
     values, se = cam.values, cam.uncertainty
     rail = arr["rail_mm"]
     focus_rail = values["focus_rail_mm"]
@@ -627,7 +703,11 @@ def combine(
                 "paper_argmin_La": paper_focus_dict,
             },
             "priors": priors_section,
-            "camera_model": {**cam.to_dict(), "corner_systematic": corner_spread},
+            "camera_model": {
+                **cam.to_dict(),
+                "corner_systematic": corner_spread,
+                "main_image_systematic": main_image_spread,
+            },
             "estimates": {
                 "sweep": sweep.to_dict(),
                 "paper_route": paper_route.to_dict(),

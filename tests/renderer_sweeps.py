@@ -65,6 +65,13 @@ def check_accuracy(result: dict[str, Any], truth: dict[str, Any]) -> None:
     unc = result["uncertainty"]
     assert abs(result["a_mm"] - a) <= 3 * unc["a_mm"], (result["a_mm"], a, unc["a_mm"])
     assert abs(result["b_mm"] - b) <= 3 * unc["b_mm"], (result["b_mm"], b, unc["b_mm"])
+    # F from the magnification, both corners' main images placed with the camera's Q(u)
+    focal = truth_value(truth, "main_focal_mm")
+    assert focal is not None
+    f_err = result["main_focal_mm"] - focal
+    assert abs(f_err) <= 3 * unc["main_focal_mm"], (f_err, unc["main_focal_mm"])
+    if result["corners_found"]["reference_frames"]:
+        assert result["camera_model"]["main_image_systematic"]["main_focal_mm"] >= 0
     # the calibrated camera's p at every frame's distance
     p_true = {f["index"]: f.get("p_px", f.get("patch_size_px")) for f in truth["frames"]}
     worst = max(abs(f["patch_size_px"] - p_true[f["index"]]) for f in result["frames"])
