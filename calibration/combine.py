@@ -133,6 +133,20 @@ def _inverse_magnification(
     return inv, se
 
 
+def _add_half_spread(
+    cam: CameraModelFit, one: CameraModelFit, other: CameraModelFit
+) -> dict[str, float]:
+    """Half the difference of two alternative cameras, added in quadrature to ``cam``'s
+    uncertainty of every quantity; returns the halves."""
+    spread = {}
+    for key in cam.values:
+        half = 0.5 * abs(one.values[key] - other.values[key])
+        if math.isfinite(half):
+            spread[key] = half
+            cam.uncertainty[key] = float(math.hypot(cam.uncertainty[key], half))
+    return spread
+
+
 def _magnification_on_camera(
     cam: CameraModelFit,
     frames: list[FrameSummary],
@@ -194,13 +208,7 @@ def _main_image_systematic(
             )
         except ModelError:
             return {}
-    spread = {}
-    for key in cam.values:
-        half = 0.5 * abs(fits[0].values[key] - fits[1].values[key])
-        if math.isfinite(half):
-            spread[key] = half
-            cam.uncertainty[key] = float(math.hypot(cam.uncertainty[key], half))
-    return spread
+    return _add_half_spread(cam, fits[0], fits[1])
 
 
 def _corner_agreement(frames: list[FrameSummary]) -> dict[str, Any]:
@@ -328,13 +336,7 @@ def _corner_systematic(
             fits.append(fit_camera_model(replace(measurements, Q=q, Q_se=q_se), priors))
         except ModelError:
             return {}
-    spread = {}
-    for key in cam.values:
-        half = 0.5 * abs(fits[0].values[key] - fits[1].values[key])
-        if math.isfinite(half):
-            spread[key] = half
-            cam.uncertainty[key] = float(math.hypot(cam.uncertainty[key], half))
-    return spread
+    return _add_half_spread(cam, fits[0], fits[1])
 
 
 def _corner_value(fs: FrameSummary, name: str, key: str) -> float:
