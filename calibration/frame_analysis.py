@@ -34,6 +34,7 @@ from .corners import (
 from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
 from .edge_spread import TAIL_SAMPLES, BinnedEsf, frame_esf, profile_half_px
 from .lens_grid import LensGrid
+from .main_image import CORNER_SE_FLOOR_PX
 from .optics import image_distance
 
 SEARCH_BAND_PITCHES = 8.0
@@ -163,7 +164,7 @@ def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
     mx, my = ctx.lens_grid.centre(ii, jj)
     sx = np.array([m.x for m in fit.measurements])
     sy = np.array([m.y for m in fit.measurements])
-    se = np.array([max(m.x_se, m.y_se, 0.003) for m in fit.measurements])
+    se = np.array([max(m.x_se, m.y_se, CORNER_SE_FLOOR_PX) for m in fit.measurements])
     use = ok.copy()
     for _ in range(4):
         n = int(use.sum())

@@ -13,8 +13,7 @@ F −0.059 % at 4σ, with the micro-image positions right to 0.003 px).
 
 :func:`lever_arm_inverse_magnification` recomputes both corners' main images with a
 ``Q`` per frame given by the caller (the calibrated camera's ``Q(u)``, far more precise
-than one corner's), with its uncertainty (statistical and systematic) propagated
-through each corner's lever arm into the corners' distance; ``1/M = 2s/(|r_ref -
+than one corner's), with its uncertainty propagated through each corner's lever arm into the corners' distance; ``1/M = 2s/(|r_ref -
 r_std|·δ)``.
 """
 
@@ -29,7 +28,8 @@ from numpy.typing import NDArray
 from .lens_grid import LensGrid
 
 CORNER_SE_FLOOR_PX = 0.003
-"""Smallest standard error of a micro-image corner position (px), as the disparity fit."""
+"""Smallest standard error of a micro-image corner position (px), here and in the
+frame's disparity fit (:mod:`calibration.frame_analysis`)."""
 
 
 def _main_image(
@@ -66,7 +66,8 @@ def lever_arm_inverse_magnification(
 
     ``corners[k]``: frame ``k``'s ``{"standard": rows, "reference": rows}`` (the frame
     summary's ``corners``; empty or missing when the corner was not found).
-    ``q_se``: the 1σ of ``q`` (statistical and systematic, per frame); it moves the
+    ``q_se``: the 1σ of ``q`` per frame (the caller's; a systematic common to every
+    frame belongs in a refit, not here); it moves the
     two main images by their lever arms, and their distance by the difference of the
     lever arms along the line joining them. NaN where either corner is missing.
     """
