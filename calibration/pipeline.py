@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .archive import ImageError, SweepArchive
+from .blas_threads import single_blas_thread
 from .camera_model import ModelError, check_priors
 from .combine import combine
 from .corners import MicroImageMap
@@ -164,6 +165,12 @@ def _worker_init(root: str, analyzer: FrameAnalyzer) -> None:
     _WORKER["analyzer"] = analyzer
 
 
+def _pool_worker_init(root: str, analyzer: FrameAnalyzer) -> None:
+    """A pool process's initializer: one BLAS thread for its life (:mod:`.blas_threads`)."""
+    single_blas_thread()
+    _worker_init(root, analyzer)
+
+
 def _worker_analyze(index: int, rail_mm: float) -> FrameSummary | str:
     """Decode and analyse one frame in a worker; the error text when it cannot be read."""
     try:
@@ -188,8 +195,20 @@ def calibrate_archive(
     """Calibrate an ``lfcal-sweep/1`` archive; unreadable frames are skipped and reported.
 
     Frames are decoded and analysed in ``workers`` processes (default: one per
-    core, at most 4; 1 analyses in this process).
+    core, at most 4; 1 analyses in this process). BLAS runs one thread per process
+    throughout (:mod:`calibration.blas_threads`).
     """
+    with single_blas_thread():
+        return _calibrate_archive(path, options=options, progress=progress, workers=workers)
+
+
+def _calibrate_archive(
+    path: str | Path,
+    *,
+    options: CalibrationOptions | None,
+    progress: Callable[[int, int], None] | None,
+    workers: int | None,
+) -> CalibrationResult:
     archive = SweepArchive.open(path)
     geometry = SweepGeometry.from_manifest(archive.manifest)
     try:
@@ -226,7 +245,7 @@ def calibrate_archive(
         with ProcessPoolExecutor(
             n_workers,
             mp_context=ctx,
-            initializer=_worker_init,
+            initializer=_pool_worker_init,
             initargs=(str(archive.root), analyzer),
         ) as pool:
             futures = {pool.submit(_worker_analyze, e.index, e.rail_mm): e.index for e in entries}

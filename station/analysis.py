@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from calibration.archive import read_image
+from calibration.blas_threads import single_blas_thread
 from calibration.pipeline import (
     CalibrationError,
     FrameAnalyzer,
@@ -72,12 +73,14 @@ def lower_cpu_priority() -> None:
 
 
 def _init_worker() -> None:
-    """Runs first in every worker: lower its CPU priority (:func:`lower_cpu_priority`);
+    """Runs first in every worker: lower its CPU priority (:func:`lower_cpu_priority`),
+    one BLAS thread (:mod:`calibration.blas_threads`: the pool is the parallelism);
     exit when the station process ends, even by ``kill -9``.
 
     (A pool worker otherwise waits for work forever once its parent is gone.)
     """
     lower_cpu_priority()
+    single_blas_thread()
     parent = multiprocessing.parent_process()
     if parent is None:
         return
@@ -436,7 +439,8 @@ class AnalysisSession:
             status, payload = future.result()
         except (BrokenProcessPool, RuntimeError) as exc:  # pool broken or shut down
             self._pool.reset(None, f"the final calibration's worker process failed ({exc})")
-            return combine(summaries, geometry, self._analyzer.grid).to_dict()
+            with single_blas_thread():
+                return combine(summaries, geometry, self._analyzer.grid).to_dict()
         if status == "ok":
             return dict(payload)
         cls, message, partial = payload
