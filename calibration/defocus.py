@@ -56,6 +56,7 @@ the result warns). The numerical core is :mod:`calibration.defocus_problem`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -98,6 +99,10 @@ JACKKNIFE_BLOCKS = 8
 """Contiguous blocks of the sweep (in ``Q``, i.e. along the rail) left out in turn by
 :func:`jackknife_defocus`; each refit keeps 7/8 of the frames, and the jackknife variance
 has 7 degrees of freedom."""
+
+JACKKNIFE_THREADS = 2
+"""The jackknife's refits run on this many threads (numpy releases the GIL in most of a
+refit's array work)."""
 
 JACKKNIFE_FALSE_ALARM = 0.01
 """Probability that a sweep the blur model describes is called inconsistent by the
@@ -319,7 +324,8 @@ def jackknife_defocus(
         theta, cov, robust, _ = prob.fit(start, np.arange(len(kept)), bounds)
         return float(theta[0]), float(np.sqrt(max(cov[0, 0], robust[0, 0], 0.0)))
 
-    refits = [left_out(block) for block in np.array_split(np.argsort(q), n_blocks)]
+    with ThreadPoolExecutor(JACKKNIFE_THREADS) as pool:
+        refits = list(pool.map(left_out, np.array_split(np.argsort(q), n_blocks)))
     q0 = np.array([r[0] for r in refits])
     jackknife = float(np.sqrt((n_blocks - 1) / n_blocks * np.sum((q0 - q0.mean()) ** 2)))
     # each refit against the full fit: under the model their difference has the variance
