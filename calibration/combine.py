@@ -401,6 +401,13 @@ def combine(
         defocus = _defocus_or_raise(on_camera, g, partial, start=start)
         focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
         cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
+        if n_ref:
+            # the main images again on this camera's Q(u): the first placement's camera had
+            # the rough Q0, under which the data sheet still had a say
+            inv_m, inv_m_se = magnification_on_camera(cam, frames, rails, grid, g)
+            cam, measurements, shading = _camera_or_raise(
+                focus, arr, inv_m, inv_m_se, grid, g, partial
+            )
         q_refined, _ = cam.q_at_rail(rails)
         if float(np.max(np.abs(q_refined - q_model))) <= REFIT_FRACTION * defocus.Q0_se:
             break
