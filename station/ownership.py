@@ -205,11 +205,21 @@ class PostgresOwnership:
         self._stop.set()
         with self._lock:
             conn, self._conn = self._conn, None
-        if conn is not None:
-            try:
-                conn.close()  # ends the session: the advisory lock goes with it
-            except Exception:  # noqa: BLE001 - closing is best effort
-                pass
+        if conn is None:
+            return
+        try:
+            # unlocked before the return: closing alone ends the session, but the server
+            # drops its locks only when that backend has exited, a moment later, and a
+            # station started again at once would find itself still running
+            conn.execute(
+                "SELECT pg_advisory_unlock(%s, hashtext(%s))", (OWNERSHIP_KEY, self.station_id)
+            )
+        except Exception:  # noqa: BLE001 - the server may be gone: closing ends it anyway
+            pass
+        try:
+            conn.close()  # ends the session: any lock left goes with it
+        except Exception:  # noqa: BLE001 - closing is best effort
+            pass
 
 
 def station_alive(store: JobStore, station_id: str, live: set[str] | None) -> bool | None:

@@ -271,6 +271,20 @@ def test_one_process_per_station_on_a_shared_database(pg: PostgresServer) -> Non
     again.release()
 
 
+def test_a_released_station_can_be_started_again_at_once(pg: PostgresServer) -> None:
+    """release() unlocks before it returns: closing the session alone frees the lock only
+    when the server's backend has exited, and on a loaded machine a station started again
+    right away found itself "already running" (seen on CI; 1 of the first cycles under load
+    here)."""
+    url = pg.url()
+    for _ in range(50):
+        PostgresOwnership(url, "bench-9").release()
+    held = PostgresOwnership(url, "bench-9")
+    with pytest.raises(StationBusy):
+        PostgresOwnership(url, "bench-9")
+    held.release()
+
+
 def test_an_unreachable_database_is_one_line_naming_it() -> None:
     url = f"postgresql://lfcal:secret@127.0.0.1:{free_port()}/jobs"
     with pytest.raises(StoreUnavailable) as exc:
