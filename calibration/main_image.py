@@ -32,6 +32,16 @@ CORNER_SE_FLOOR_PX = 0.003
 frame's disparity fit (:mod:`calibration.frame_analysis`)."""
 
 
+def inverse_magnification_from_distance(
+    dist_px: float, dist_se_px: float, *, square_mm: float, pixel_pitch_mm: float
+) -> tuple[float, float]:
+    """``1/M = 2s/(d·δ)`` and its 1σ from the distance ``d`` (px) between the two corners'
+    main images, ``2s`` apart on the board (the main image of board point X lies at
+    ``-X·M``, OPTICS.md §3)."""
+    inv = 2.0 * square_mm / (dist_px * pixel_pitch_mm)
+    return inv, inv * dist_se_px / dist_px
+
+
 def _main_image(
     rows: NDArray[np.float64], lens_grid: LensGrid, q: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
@@ -94,6 +104,7 @@ def lever_arm_inverse_magnification(
         dist_se = float(
             np.sqrt(se_std**2 + se_ref**2 + (lever_along * float(q_se[k]) / q[k] ** 2) ** 2)
         )
-        inv[k] = 2.0 * square_mm / (dist * pixel_pitch_mm)
-        se[k] = inv[k] * dist_se / dist
+        inv[k], se[k] = inverse_magnification_from_distance(
+            dist, dist_se, square_mm=square_mm, pixel_pitch_mm=pixel_pitch_mm
+        )
     return inv, se

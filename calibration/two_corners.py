@@ -28,7 +28,7 @@ from .camera_model import (
     SweepMeasurements,
     fit_camera_model,
 )
-from .main_image import lever_arm_inverse_magnification
+from .main_image import inverse_magnification_from_distance, lever_arm_inverse_magnification
 from .mla_grid import MlaGrid
 from .summary import FrameSummary, SweepGeometry
 
@@ -71,8 +71,9 @@ def inverse_magnification(
         if not (np.all(np.isfinite(delta)) and dist > 0 and np.all(np.isfinite(sa + sb))):
             continue
         dist_se = float(np.sqrt(np.sum((delta / dist) ** 2 * (sa**2 + sb**2))))
-        inv[k] = 2.0 * g.board.square_mm / (dist * g.pixel_pitch_mm)
-        se[k] = inv[k] * dist_se / dist
+        inv[k], se[k] = inverse_magnification_from_distance(
+            dist, dist_se, square_mm=g.board.square_mm, pixel_pitch_mm=g.pixel_pitch_mm
+        )
     return inv, se
 
 
