@@ -46,6 +46,7 @@ from .defocus import (
 )
 from .edge_spread import BinnedEsf
 from .focus import corner_size_mm, paper_focus
+from .lattice_scale import replace_profiles
 from .mla_grid import MlaGrid
 from .parameters import Estimate, paper_estimate
 from .shading import WhiteShading
@@ -87,9 +88,11 @@ def _frame_arrays(frames: list[FrameSummary]) -> dict[str, NDArray[np.float64]]:
     return {k: np.array([getattr(f, k) for f in frames], dtype=np.float64) for k in keys}
 
 
-def _observations(frames: list[FrameSummary]) -> list[EdgeObservation]:
-    """Every corner's edge-spread function with that corner's own Q."""
+def _observations(frames: list[FrameSummary], g: SweepGeometry) -> list[EdgeObservation]:
+    """Every corner's edge-spread function with that corner's own Q, its profiles placed
+    by the corner's lattice scale smoothed over the sweep (:mod:`calibration.lattice_scale`)."""
     obs = []
+    q_se: dict[tuple[int, str], float] = {}
     for fs in frames:
         for name, esf in fs.esf.items():
             corner = corner_of(fs, name)
@@ -97,7 +100,9 @@ def _observations(frames: list[FrameSummary]) -> list[EdgeObservation]:
             if q is None or not math.isfinite(q) or not esf:
                 continue
             obs.append(EdgeObservation(fs.index, name, float(q), BinnedEsf.from_dict(esf)))
-    return obs
+            q_se[(fs.index, name)] = float(corner.get("Q_se") or math.nan)  # type: ignore[union-attr]
+    distances = {fs.index: float(fs.object_distance_mm) for fs in frames}
+    return replace_profiles(obs, distances, q_se, main_focal_mm=g.main_focal_mm)
 
 
 SHADING_MODEL_UNCERTAINTY = 0.3
@@ -378,7 +383,7 @@ def combine(
             "their data-sheet values and tolerances; Lr, Lp and La are not available"
         )
     inv_m, inv_m_se = inverse_magnification(frames, g)
-    observations = _observations(frames)
+    observations = _observations(frames, g)
     # the defocus is set by the camera's Q(u), which the calibrated camera gives more precisely
     # than any one frame's disparity (near focus a frame's Q scatters most, and there the blur
     # depends most on it): the camera first, with a rough Q0 (its Q(u) barely depends on it),

@@ -24,7 +24,12 @@ matters when edges are sharp and sampled by few points per pixel: one
 micro-image then locates its edge only to the sample spacing (it locks to the
 pixel grid), the lattice averages that over every micro-image of the corner.
 The prediction's error, from the fit's covariance, is returned as the RMS
-placement jitter the defocus model convolves with.
+placement jitter the defocus model convolves with, with and without the part
+of the lattice's scale ``1+Q``: one frame measures its scale only to ~1e-3 on
+a sharp, point-sampled corner, which moves a profile by the scale error times
+its lens's distance from the others (its lever, up to ~100 px), so every
+profile carries its lever and the sweep can place them again with a scale
+smoothed over all frames (:meth:`calibration.edge_spread.BinnedEsf.replaced`).
 """
 
 from __future__ import annotations
@@ -70,23 +75,39 @@ class ProfileWindow:
     half_px: int = 6
 
 
+@dataclass(frozen=True)
+class PlacedProfiles:
+    """Profiles and their placement error (px): ``jitter_px`` the RMS spread of the
+    lattice's prediction errors about their common shift, ``jitter_fixed_scale_px`` the
+    same with the lattice's scale known (its other parameters conditioned on it). Each
+    profile's lever is how far it moves per unit error of the scale ``1+Q``, the offset
+    ``c`` erring with it as the fit's covariance says (``δc = Σ_c,scale/Σ_scale·δ``): for
+    the vertical edge ``∓(m_x - p_x)``, ``p`` the point the fit pivots about."""
+
+    profiles: EdgeProfiles
+    jitter_px: float
+    jitter_fixed_scale_px: float
+
+
 def half_edge_profiles(
     image: NDArray[np.floating] | NDArray[np.integer],
     lattice: CornerLattice,
     lens_grid: LensGrid,
     image_grid: LensGrid,
     window: ProfileWindow,
-) -> tuple[EdgeProfiles, float]:
-    """Every clean profile across the corner's four half-edges, and the placement jitter (px).
+) -> PlacedProfiles:
+    """Every clean profile across the corner's four half-edges, with its lever, and the
+    placement jitter (px).
 
     Block labels: one per micro-image and half-edge (A above the corner, D
     below, on the vertical edge; B left, C right, on the horizontal edge).
     """
     height, width = image.shape
     radius = window.plateau_px
+    none = PlacedProfiles(EdgeProfiles.empty(), 0.0, 0.0)
     ii, jj = image_grid.indices_in(width, height, margin_px=radius + 1.0)
     if ii.size == 0:
-        return EdgeProfiles.empty(), 0.0
+        return none
     mx, my = lens_grid.centre(ii, jj)
     cx, cy = image_grid.centre(ii, jj)
     a, ox, oy = lattice.coef
@@ -115,14 +136,35 @@ def half_edge_profiles(
         grad[:, 3 + axis] = np.where(half == 1, -1.0, 1.0)
         gradients.append(-sign[:, None] * grad)
     if not parts:
-        return EdgeProfiles.empty(), 0.0
+        return none
     x = np.concatenate([p[0] for p in parts])
     y = np.concatenate([p[1] for p in parts])
     label = np.concatenate([p[2] for p in parts])
     _, block = np.unique(label, return_inverse=True)
-    return EdgeProfiles(x, y, block.astype(np.int64)), _placement_jitter(
-        np.concatenate(gradients), sigma
+    grads = np.concatenate(gradients)
+    # the lever: how a profile moves per unit error of the scale, with the offset's error
+    # that comes with it in the fit (its regression on the scale's: the fit pivots about
+    # the micro-images it measured)
+    direction = np.zeros(5)
+    direction[0] = 1.0
+    if sigma[0, 0] > 0:
+        direction[1:3] = sigma[1:3, 0] / sigma[0, 0]
+    return PlacedProfiles(
+        EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
+        _placement_jitter(grads, sigma),
+        _placement_jitter(grads, _scale_known(sigma)),
     )
+
+
+def _scale_known(sigma: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The covariance of the other parameters given the first (the scale): zero in its
+    row and column, ``Σ_rr - Σ_r0·Σ_0r/Σ_00`` elsewhere."""
+    out = np.zeros_like(sigma)
+    if sigma[0, 0] > 0:
+        out[1:, 1:] = sigma[1:, 1:] - np.outer(sigma[1:, 0], sigma[0, 1:]) / sigma[0, 0]
+    else:
+        out[1:, 1:] = sigma[1:, 1:]
+    return out
 
 
 def _placement_jitter(gradients: NDArray[np.float64], sigma: NDArray[np.float64]) -> float:

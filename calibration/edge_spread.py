@@ -24,6 +24,10 @@ spacing in one micro-image, and the lattice ``s = (1+Q)·m + c`` averages that
 over every micro-image of the corner. The lattice's own prediction error
 is carried as ``jitter_px``: the function this module returns is the edge
 spread convolved with that placement error, which the defocus model includes.
+The lattice's scale is the weak part of it near focus (one frame's ``Q`` to
+~1e-3 there), so the samples are also binned by their lever on that scale
+(:class:`LeverGroup`), and the sweep places them again with a scale it knows
+far better (:mod:`calibration.lattice_scale`).
 
 Pooling the profiles of every micro-image with their different sub-pixel
 phases samples ``E`` far below the pixel: the result is binned in
@@ -77,12 +81,16 @@ class EdgeProfiles:
 
     ``x``: signed distance of each sample from the edge (pixels, dark side
     negative), shape ``(P, K)``; ``y``: the raw counts; ``block``: the edge
-    block of each profile (profiles of one block share the drift terms).
+    block of each profile (profiles of one block share the drift terms);
+    ``lever``: per profile, how far its samples move per unit error of the
+    corner lattice's scale ``1+Q`` (pixels; :mod:`calibration.edge_profiles`),
+    or None when unknown.
     """
 
     x: NDArray[np.float64]
     y: NDArray[np.float64]
     block: NDArray[np.int64]
+    lever: NDArray[np.float64] | None = None
 
     @property
     def count(self) -> int:
@@ -106,11 +114,66 @@ class EdgeProfiles:
         for p in parts:
             blocks.append(p.block + offset)
             offset += int(p.block.max()) + 1 if p.block.size else 0
+        levers = [p.lever for p in parts]
         return EdgeProfiles(
             np.concatenate([p.x for p in parts]),
             np.concatenate([p.y for p in parts]),
             np.concatenate(blocks),
+            None if any(v is None for v in levers) else np.concatenate(levers),  # type: ignore[arg-type]
         )
+
+
+LEVER_GROUPS = 6
+"""Groups by lever (:class:`LeverGroup`) a corner's profiles are also binned in."""
+
+
+@dataclass(frozen=True)
+class LeverGroup:
+    """The profiles of one range of levers, binned on their own.
+
+    A frame's corner lattice ``s = (1+Q)·m + c`` places every profile; an error
+    ``δ`` of its scale moves the samples of a profile by ``δ·lever`` (the lever
+    is ``±`` the lens centre's coordinate across the edge, pixels, here taken
+    about the profiles' mean). The pooled function mixes copies moved by
+    different amounts, a blur no later shift can undo; kept apart by lever, each
+    group can be moved back once the scale is known better
+    (:meth:`BinnedEsf.replaced`). ``lever_px``: the group's mean lever,
+    ``lever_sd_px``: their spread within the group.
+    """
+
+    lever_px: float
+    lever_sd_px: float
+    esf: BinnedEsf
+
+    def to_dict(self) -> dict[str, Any]:
+        """What :meth:`BinnedEsf.replaced` needs (not the standard errors: the merged
+        function keeps the whole one's), rounded to far below the noise."""
+        esf = self.esf
+        weight = esf.weight if esf.weight is not None else esf.count
+        return {
+            "lever_px": round(self.lever_px, 3),
+            "lever_sd_px": round(self.lever_sd_px, 3),
+            "x_px": np.round(esf.x, 4).tolist(),
+            "x_sd_px": np.round(esf.position_sd_px, 4).tolist(),
+            "value": np.round(esf.value, 5).tolist(),
+            "count": esf.count.tolist(),
+            "weight": np.round(np.asarray(weight, dtype=np.float64), 3).tolist(),
+            "profiles": esf.profiles,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LeverGroup:
+        x = np.asarray(data["x_px"], dtype=np.float64)
+        esf = BinnedEsf(
+            x,
+            np.asarray(data["value"], dtype=np.float64),
+            np.full(x.shape, np.nan),
+            np.asarray(data["count"], dtype=np.int64),
+            int(data["profiles"]),
+            np.asarray(data["x_sd_px"], dtype=np.float64),
+            weight=np.asarray(data["weight"], dtype=np.float64),
+        )
+        return cls(float(data["lever_px"]), float(data["lever_sd_px"]), esf)
 
 
 @dataclass(frozen=True)
@@ -123,6 +186,12 @@ class BinnedEsf:
     samples are dropped. ``profiles``: how many profiles were pooled.
     ``jitter_px``: RMS error of the edge positions the samples were placed
     against (pixels): the function is the edge spread convolved with it.
+    ``jitter_fixed_scale_px``: the same without the error of the lattice's scale
+    (what is left once the scale is known), NaN when not recorded;
+    ``lever_groups``: the same samples binned by lever (:class:`LeverGroup`),
+    empty when not recorded; ``weight``: the sum of the samples' weights per bin
+    (recorded for lever groups: their merge weighs the samples as the whole
+    function does).
     """
 
     x: NDArray[np.float64]
@@ -132,6 +201,9 @@ class BinnedEsf:
     profiles: int
     x_sd: NDArray[np.float64] | None = None
     jitter_px: float = 0.0
+    jitter_fixed_scale_px: float = float("nan")
+    lever_groups: tuple[LeverGroup, ...] = ()
+    weight: NDArray[np.float64] | None = None
 
     @property
     def position_sd_px(self) -> NDArray[np.float64]:
@@ -146,7 +218,7 @@ class BinnedEsf:
         return self.x_sd
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "x_px": np.round(self.x, 5).tolist(),
             "x_sd_px": np.round(self.position_sd_px, 5).tolist(),
             "value": np.round(self.value, 6).tolist(),
@@ -155,10 +227,16 @@ class BinnedEsf:
             "profiles": self.profiles,
             "jitter_px": round(float(self.jitter_px), 5),
         }
+        if np.isfinite(self.jitter_fixed_scale_px):
+            out["jitter_fixed_scale_px"] = round(float(self.jitter_fixed_scale_px), 5)
+        if self.lever_groups:
+            out["lever_groups"] = [g.to_dict() for g in self.lever_groups]
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> BinnedEsf:
         sd = data.get("x_sd_px")
+        fixed = data.get("jitter_fixed_scale_px")
         return cls(
             np.asarray(data["x_px"], dtype=np.float64),
             np.asarray(data["value"], dtype=np.float64),
@@ -167,6 +245,56 @@ class BinnedEsf:
             int(data["profiles"]),
             None if sd is None else np.asarray(sd, dtype=np.float64),
             float(data.get("jitter_px") or 0.0),
+            float("nan") if fixed is None else float(fixed),
+            tuple(LeverGroup.from_dict(g) for g in data.get("lever_groups") or ()),
+        )
+
+    def replaced(self, scale_error: float, scale_se: float) -> BinnedEsf:
+        """The function with its samples placed by a better lattice scale.
+
+        ``scale_error``: the frame lattice's scale ``1+Q`` minus the better one,
+        ``scale_se``: the better one's standard error. Each lever group moves back
+        by ``-scale_error·lever`` and the groups are merged; the jitter left is the
+        placement without the scale's error, the spread of levers within each
+        group times ``scale_error`` and each group's lever times ``scale_se``. The
+        groups' bins are merged with their samples' weights (``weight``), so with no
+        error this is the whole function again, each merged bin keeping the whole
+        function's standard error at its position.
+        Without lever groups (or a finite error) the function itself.
+        """
+        fixed = self.jitter_fixed_scale_px
+        if not self.lever_groups or not (np.isfinite(scale_error) and np.isfinite(fixed)):
+            return self
+        se2 = float(scale_se) ** 2 if np.isfinite(scale_se) else 0.0
+        n_bins = int(round(2 * ESF_HALF_PX / ESF_BIN_PX))
+        sn, snx, snxx, snv = (np.zeros(n_bins) for _ in range(4))
+        count = np.zeros(n_bins, dtype=np.int64)
+        jitter2 = 0.0
+        for g in self.lever_groups:
+            x = g.esf.x - scale_error * g.lever_px
+            b = np.clip(np.floor((x + ESF_HALF_PX) / ESF_BIN_PX).astype(np.int64), 0, n_bins - 1)
+            n = np.asarray(g.esf.weight if g.esf.weight is not None else g.esf.count, float)
+            np.add.at(sn, b, n)
+            np.add.at(snx, b, n * x)
+            np.add.at(snxx, b, n * (x**2 + g.esf.position_sd_px**2))
+            np.add.at(snv, b, n * g.esf.value)
+            np.add.at(count, b, g.esf.count)
+            jitter2 += g.esf.profiles * (
+                fixed**2 + scale_error**2 * g.lever_sd_px**2 + se2 * g.lever_px**2
+            )
+        keep = count >= 3
+        mean = snx[keep] / sn[keep]
+        return BinnedEsf(
+            mean,
+            snv[keep] / sn[keep],
+            # the groups' bins hold few samples each, some of one sub-pixel phase: their
+            # scatter says little, so the samples keep their weights in the whole function
+            # and each bin the whole function's standard error where it now lies
+            np.interp(mean, self.x, self.se),
+            count[keep],
+            self.profiles,
+            np.sqrt(np.maximum(snxx[keep] / sn[keep] - mean**2, 0.0)),
+            float(np.sqrt(jitter2 / max(sum(g.esf.profiles for g in self.lever_groups), 1))),
         )
 
     @staticmethod
@@ -348,7 +476,15 @@ def _bin(
     n_eff = sw * sw / np.maximum(sw2, 1e-300)
     se = np.sqrt(var * count / np.maximum(count - 2, 1) / np.maximum(n_eff, 1.0))
     x_sd = np.sqrt(sdx[keep] / sw[keep])
-    return BinnedEsf(mean_x, mean_z, se[keep], count[keep].astype(np.int64), n_profiles, x_sd)
+    return BinnedEsf(
+        mean_x,
+        mean_z,
+        se[keep],
+        count[keep].astype(np.int64),
+        n_profiles,
+        x_sd,
+        weight=np.asarray(sw[keep], dtype=np.float64),
+    )
 
 
 def frame_esf(
@@ -356,6 +492,7 @@ def frame_esf(
     *,
     start_width_px: float,
     jitter_px: float = 0.0,
+    jitter_fixed_scale_px: float = float("nan"),
     max_flat_px: float = np.inf,
 ) -> BinnedEsf | None:
     """The binned, normalised edge-spread function of pooled profiles (None if too few).
@@ -364,9 +501,11 @@ def frame_esf(
     which sets where the flat tails start (:func:`flat_distance`, at most
     ``max_flat_px``: ``TAIL_SAMPLES`` short of the profiles' ends);
     ``jitter_px``: the RMS error of the edge positions the profiles are placed
-    against, recorded with the function. Profiles whose scatter about the
-    pooled function is far above the others' (a defect, a stray edge) are
-    dropped.
+    against, recorded with the function, and ``jitter_fixed_scale_px`` that
+    error without the lattice scale's part; when the profiles carry levers the
+    same samples are also binned by lever (:class:`LeverGroup`). Profiles whose
+    scatter about the pooled function is far above the others' (a defect, a
+    stray edge) are dropped.
     """
     if prof.count < MIN_PROFILES:
         return None
@@ -386,4 +525,69 @@ def frame_esf(
     binned = _bin(prof.x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
     if binned.x.size < 10:
         return None
-    return replace(binned, jitter_px=float(jitter_px))
+    groups: tuple[LeverGroup, ...] = ()
+    if prof.lever is not None:
+        groups = _lever_groups(prof.x[good], z[good], weight[good], prof.lever[good])
+    return replace(
+        binned,
+        jitter_px=float(jitter_px),
+        jitter_fixed_scale_px=float(jitter_fixed_scale_px),
+        lever_groups=groups,
+    )
+
+
+def _lever_groups(
+    x: NDArray[np.float64],
+    z: NDArray[np.float64],
+    weight: NDArray[np.float64],
+    lever: NDArray[np.float64],
+) -> tuple[LeverGroup, ...]:
+    """The profiles (rows) binned in at most ``LEVER_GROUPS`` groups of neighbouring levers,
+    each of at least ``MIN_PROFILES`` profiles, levers about their weighted mean (weights
+    ``weight[:, 0]``). A micro-image's half-edge shares one lever; the distinct levers are
+    joined pairwise, neighbours with the least increase of the spread within groups first
+    (Ward's criterion on a line), so a group never spans a gap between clusters."""
+    weight = weight / float(np.mean(weight))  # sums of weights of order the sample counts
+    w = weight[:, 0]
+    rel = lever - float(np.sum(w * lever) / np.sum(w))
+    values, inverse = np.unique(rel, return_inverse=True)
+    # each cluster: [profiles, sum of lever, sum of lever²] (unweighted, as its members)
+    members = [
+        [int(n), float(v) * n, float(v) * float(v) * n]
+        for v, n in zip(values, np.bincount(inverse, minlength=values.size), strict=True)
+    ]
+    owner = list(range(values.size))  # cluster of each distinct value, clusters contiguous
+
+    def cost(a: list[float], b: list[float]) -> float:
+        n = a[0] + b[0]
+        joined = a[2] + b[2] - (a[1] + b[1]) ** 2 / n
+        return joined - (a[2] - a[1] ** 2 / a[0]) - (b[2] - b[1] ** 2 / b[0])
+
+    while len(members) > 1 and (
+        len(members) > LEVER_GROUPS or min(m[0] for m in members) < MIN_PROFILES
+    ):
+        costs = [cost(members[k], members[k + 1]) for k in range(len(members) - 1)]
+        small = [k for k, m in enumerate(members) if m[0] < MIN_PROFILES]
+        if len(members) <= LEVER_GROUPS and small:  # only the small ones must join
+            k0 = small[0]
+            pairs = [k for k in (k0 - 1, k0) if 0 <= k < len(members) - 1]
+            k = min(pairs, key=lambda j: costs[j])
+        else:
+            k = int(np.argmin(costs))
+        members[k] = [a + b for a, b in zip(members[k], members[k + 1], strict=True)]
+        del members[k + 1]
+        owner = [o if o <= k else o - 1 for o in owner]
+    label = np.asarray(owner, dtype=np.int64)[inverse]
+    groups = []
+    for k in np.unique(label):
+        sel = label == k
+        if sel.sum() < MIN_PROFILES:
+            return ()
+        wk = w[sel]
+        mean = float(np.sum(wk * rel[sel]) / np.sum(wk))
+        sd = float(np.sqrt(np.sum(wk * (rel[sel] - mean) ** 2) / np.sum(wk)))
+        binned = _bin(x[sel].ravel(), z[sel].ravel(), weight[sel].ravel(), int(sel.sum()))
+        if binned.x.size < 10:
+            return ()
+        groups.append(LeverGroup(mean, sd, binned))
+    return tuple(groups)

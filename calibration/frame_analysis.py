@@ -395,10 +395,11 @@ def _edge_spread(
         half_px=half_px,
     )
     assert fit.lattice is not None
-    profiles, jitter = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
+    placed = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
     return frame_esf(
-        profiles,
+        placed.profiles,
         start_width_px=fit.edge_width_px,
-        jitter_px=jitter,
+        jitter_px=placed.jitter_px,
+        jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
         max_flat_px=half_px - TAIL_SAMPLES,
     )

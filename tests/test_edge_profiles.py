@@ -20,7 +20,7 @@ from calibration.edge_profiles import (
     _placement_jitter,
     half_edge_profiles,
 )
-from calibration.edge_spread import frame_esf
+from calibration.edge_spread import LEVER_GROUPS, BinnedEsf, frame_esf
 from calibration.lens_grid import LensGrid
 
 PITCH, Q, SIGMA, RADIUS = 40.0, 0.25, 0.7, 14.0
@@ -56,8 +56,9 @@ def _window() -> ProfileWindow:
 def test_profiles_of_every_micro_image_give_back_the_edge_spread() -> None:
     frame, lens, image, coef = _frame()
     lattice = CornerLattice(coef=coef, covariance=np.zeros((3, 3)))
-    profiles, jitter = half_edge_profiles(frame, lattice, lens, image, _window())
-    assert jitter == 0.0
+    placed = half_edge_profiles(frame, lattice, lens, image, _window())
+    profiles = placed.profiles
+    assert placed.jitter_px == 0.0
     esf = frame_esf(profiles, start_width_px=SIGMA)
     assert esf is not None
     inside = np.abs(esf.x) < 4.0
@@ -70,7 +71,7 @@ def test_no_profile_reaches_the_corner_or_leaves_the_plateau() -> None:
     frame, lens, image, coef = _frame()
     window = _window()
     lattice = CornerLattice(coef=coef, covariance=np.zeros((3, 3)))
-    profiles, _ = half_edge_profiles(frame, lattice, lens, image, window)
+    profiles = half_edge_profiles(frame, lattice, lens, image, window).profiles
     # a profile through the corner's other edge, or through a dark gap, would not be a
     # clean step: every profile is flat at both ends
     z = (profiles.y - DARK) / (LIGHT - DARK)
@@ -86,16 +87,58 @@ def test_an_error_of_the_lattice_offset_blurs_the_pooled_function() -> None:
     spreads them by its whole size."""
     frame, lens, image, coef = _frame()
     lattice = CornerLattice(coef=coef, covariance=np.diag([0.0, 0.04, 0.04]))
-    _, jitter = half_edge_profiles(frame, lattice, lens, image, _window())
-    assert jitter == pytest.approx(0.2, rel=0.1)
+    placed = half_edge_profiles(frame, lattice, lens, image, _window())
+    assert placed.jitter_px == pytest.approx(0.2, rel=0.1)
+    # not the scale's: knowing the scale leaves it
+    assert placed.jitter_fixed_scale_px == pytest.approx(placed.jitter_px, rel=1e-9)
 
 
 def test_an_error_of_1_plus_q_blurs_by_the_lenses_spread() -> None:
     frame, lens, image, coef = _frame()
     lattice = CornerLattice(coef=coef, covariance=np.diag([1e-6, 0.0, 0.0]))
-    _, jitter = half_edge_profiles(frame, lattice, lens, image, _window())
+    placed = half_edge_profiles(frame, lattice, lens, image, _window())
     # lens centres spread over the frame by about ±300 px: a 1e-3 error of 1+Q, ~0.2 px
-    assert 0.1 < jitter < 0.3
+    assert 0.1 < placed.jitter_px < 0.3
+    # with the scale known there is no error left
+    assert placed.jitter_fixed_scale_px == pytest.approx(0.0, abs=1e-9)
+    # the levers are the lens centres' coordinates across the edge: their spread is the
+    # jitter per unit scale error
+    lever = placed.profiles.lever
+    assert lever is not None and lever.shape == (placed.profiles.count,)
+    assert np.std(lever) * 1e-3 == pytest.approx(placed.jitter_px, rel=0.01)
+
+
+def test_a_wrong_lattice_scale_blurs_and_placing_again_by_lever_undoes_it() -> None:
+    """Profiles placed with a scale 1e-3 off are moved by up to ~0.3 px (lens centres up to
+    ~250 px from the fit's pivot): pooled they are a blurred step. Binned by lever and moved back by the
+    scale error (as the sweep does with its smoothed scale) they give back the true function."""
+    frame, lens, image, coef = _frame()
+    error = 1e-3
+    mx, my = lens.centre(0, 0)
+    wrong = (coef[0] + error, coef[1] - error * float(mx), coef[2] - error * float(my))
+    # the fit's errors pivot about lens (0, 0): the offset errs with the scale
+    along = np.array([1.0, -float(mx), -float(my)])
+    covariance = 1e-8 * np.outer(along, along)
+    placed = half_edge_profiles(
+        frame, CornerLattice(coef=wrong, covariance=covariance), lens, image, _window()
+    )
+    esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
+    assert esf is not None and len(esf.lever_groups) == LEVER_GROUPS
+
+    # a shift common to all profiles is the defocus model's to fit: compare about each centre
+    def worst(f: BinnedEsf, sigma: float) -> float:
+        x = f.x - f.centre_px()
+        inside = np.abs(x) < 4.0
+        return float(np.max(np.abs(f.value[inside] - ndtr(x[inside] / sigma))))
+
+    assert worst(esf, SIGMA) > 0.03
+    again = esf.replaced(error, 0.0)
+    # the groups' own spread of levers (a small part of the whole) is left as jitter
+    assert 0.0 < again.jitter_px < 0.3 * float(np.std(placed.profiles.lever)) * error
+    assert worst(again, float(np.hypot(SIGMA, again.jitter_px))) < 0.006
+    # and the function survives its round trip through the frame summary's JSON
+    back = BinnedEsf.from_dict(esf.to_dict()).replaced(error, 0.0)
+    np.testing.assert_allclose(back.value, again.value, atol=1e-5)  # JSON rounding
 
 
 def test_a_shift_common_to_every_profile_is_not_counted_as_jitter() -> None:
@@ -105,3 +148,24 @@ def test_a_shift_common_to_every_profile_is_not_counted_as_jitter() -> None:
     assert _placement_jitter(same, sigma) == pytest.approx(0.0, abs=1e-12)
     mixed = same * np.repeat([1.0, -1.0], 25)[:, None]
     assert _placement_jitter(mixed, sigma) == pytest.approx(0.1)
+
+
+def test_placed_again_with_no_error_is_the_whole_function() -> None:
+    """The lever groups hold the same samples with the same weights: merged back without a
+    shift they are the pooled function, bin for bin."""
+    frame, lens, image, coef = _frame()
+    along = np.array([1.0, 0.0, 0.0])
+    placed = half_edge_profiles(
+        frame,
+        CornerLattice(coef=coef, covariance=1e-8 * np.outer(along, along)),
+        lens,
+        image,
+        _window(),
+    )
+    esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
+    assert esf is not None and esf.lever_groups
+    again = BinnedEsf.from_dict(esf.to_dict()).replaced(0.0, 0.0)
+    np.testing.assert_allclose(again.x, esf.x, atol=1e-4)  # JSON rounding
+    np.testing.assert_allclose(again.value, esf.value, atol=1e-5)  # JSON rounding
+    np.testing.assert_allclose(again.se, esf.se, rtol=1e-3)  # JSON rounding
+    np.testing.assert_allclose(again.position_sd_px, esf.position_sd_px, atol=1e-4)
