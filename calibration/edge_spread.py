@@ -126,6 +126,9 @@ class EdgeProfiles:
 LEVER_GROUPS = 6
 """Groups by lever (:class:`LeverGroup`) a corner's profiles are also binned in."""
 
+_PRE_CLUSTERS = 48
+"""Distinct levers are first cut into at most this many runs at the widest gaps (speed)."""
+
 
 @dataclass(frozen=True)
 class LeverGroup:
@@ -551,33 +554,32 @@ def _lever_groups(
     w = weight[:, 0]
     rel = lever - float(np.sum(w * lever) / np.sum(w))
     values, inverse = np.unique(rel, return_inverse=True)
-    # each cluster: [profiles, sum of lever, sum of lever²] (unweighted, as its members)
-    members = [
-        [int(n), float(v) * n, float(v) * float(v) * n]
-        for v, n in zip(values, np.bincount(inverse, minlength=values.size), strict=True)
-    ]
-    owner = list(range(values.size))  # cluster of each distinct value, clusters contiguous
-
-    def cost(a: list[float], b: list[float]) -> float:
-        n = a[0] + b[0]
-        joined = a[2] + b[2] - (a[1] + b[1]) ** 2 / n
-        return joined - (a[2] - a[1] ** 2 / a[0]) - (b[2] - b[1] ** 2 / b[0])
-
-    while len(members) > 1 and (
-        len(members) > LEVER_GROUPS or min(m[0] for m in members) < MIN_PROFILES
-    ):
-        costs = [cost(members[k], members[k + 1]) for k in range(len(members) - 1)]
-        small = [k for k, m in enumerate(members) if m[0] < MIN_PROFILES]
-        if len(members) <= LEVER_GROUPS and small:  # only the small ones must join
-            k0 = small[0]
-            pairs = [k for k in (k0 - 1, k0) if 0 <= k < len(members) - 1]
+    # clusters of neighbouring distinct values: at most PRE_CLUSTERS to start with, cut at
+    # the widest gaps between values, then joined pairwise by Ward's criterion
+    cut = np.zeros(values.size, dtype=np.int64)
+    if values.size > _PRE_CLUSTERS:
+        widest = np.argpartition(np.diff(values), -(_PRE_CLUSTERS - 1))[-(_PRE_CLUSTERS - 1) :]
+        cut[widest + 1] = 1
+    owner = np.cumsum(cut)  # cluster of each distinct value
+    per_value = np.bincount(inverse, minlength=values.size).astype(np.float64)
+    n = np.bincount(owner, per_value)
+    s1 = np.bincount(owner, per_value * values)
+    s2 = np.bincount(owner, per_value * values * values)
+    while n.size > 1 and (n.size > LEVER_GROUPS or n.min() < MIN_PROFILES):
+        within = s2 - s1 * s1 / n
+        joined = s2[:-1] + s2[1:] - (s1[:-1] + s1[1:]) ** 2 / (n[:-1] + n[1:])
+        costs = joined - within[:-1] - within[1:]
+        small = np.flatnonzero(n < MIN_PROFILES)
+        if n.size <= LEVER_GROUPS and small.size:  # only the small ones must join
+            pairs = [j for j in (small[0] - 1, small[0]) if 0 <= j < n.size - 1]
             k = min(pairs, key=lambda j: costs[j])
         else:
             k = int(np.argmin(costs))
-        members[k] = [a + b for a, b in zip(members[k], members[k + 1], strict=True)]
-        del members[k + 1]
-        owner = [o if o <= k else o - 1 for o in owner]
-    label = np.asarray(owner, dtype=np.int64)[inverse]
+        for arr in (n, s1, s2):
+            arr[k] += arr[k + 1]
+        n, s1, s2 = (np.delete(arr, k + 1) for arr in (n, s1, s2))
+        owner = np.where(owner > k, owner - 1, owner)
+    label = owner[inverse]
     groups = []
     for k in np.unique(label):
         sel = label == k
