@@ -14,7 +14,7 @@ centre nearest the principal point.
 
 Method (all vectorized; no per-pixel Python loops):
 
-1. **Initial lattice.** The power spectrum of a Hann-windowed central crop
+1. **Initial lattice** (:mod:`calibration.mla_spectrum`). The power spectrum of a Hann-windowed central crop
    shows the lattice's fundamental peaks at ``|k| = 1/pitch``; the strongest
    peak in the expected pitch band gives pitch and rotation (modulo 90°,
    reported in (-45°, 45°]); the phases of the two fundamentals give the origin.
@@ -75,12 +75,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from .lens_grid import LensGrid
+from .mla_spectrum import Lattice, initial_lattice
 from .shading import WhiteShading
 
 __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
@@ -91,7 +91,6 @@ STATUS_DEAD = 1
 STATUS_OUTLIER = 2
 STATUS_NAMES = {STATUS_USED: "used", STATUS_DEAD: "dead", STATUS_OUTLIER: "outlier"}
 
-_FFT_CROP_PX = 2048
 _MIN_PERIODS = 4  # the image must span this many micro-image pitches per axis
 _MIN_LENSES = 9
 _SUBSET_MAX = 400  # lenses per early (sparse) round
@@ -293,199 +292,6 @@ def _validate(white: NDArray[Any], lens_pitch_px: float) -> NDArray[Any]:
             "not a flat-field image"
         )
     return img
-
-
-# --------------------------------------------------------------------------- initial lattice
-
-
-@dataclass(frozen=True)
-class _Lattice:
-    origin: tuple[float, float]
-    a: float  # pitch·cos θ
-    b: float  # pitch·sin θ
-
-    @property
-    def pitch(self) -> float:
-        return math.hypot(self.a, self.b)
-
-    @property
-    def theta(self) -> float:
-        return math.atan2(self.b, self.a)
-
-    def grid(self) -> LensGrid:
-        return LensGrid(self.origin, self.pitch, self.theta)
-
-    def centre(
-        self, i: NDArray[np.int64], j: NDArray[np.int64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        return (
-            self.origin[0] + self.a * i - self.b * j,
-            self.origin[1] + self.b * i + self.a * j,
-        )
-
-
-def _fft_initial(img: NDArray[Any], lens_pitch_px: float, pitch_guess_px: float | None) -> _Lattice:
-    """Pitch, rotation and origin from the spectrum of a central crop (see the module docstring)."""
-    expected = pitch_guess_px if pitch_guess_px is not None else 1.05 * lens_pitch_px
-    if pitch_guess_px is not None:
-        band = (0.95 * pitch_guess_px, 1.05 * pitch_guess_px)
-    else:
-        band = (0.99 * lens_pitch_px, 1.25 * lens_pitch_px)
-    crop, x0, y0 = _highpass_crop(img, expected)
-    power = np.abs(np.fft.rfft2(crop)) ** 2
-    k1 = _strongest_peak(power, band)
-    peak = _power_at(power, k1)
-    _reject_harmonic(power, k1, peak)
-    pitch, theta = _both_fundamentals(power, k1)
-    origin = _phase_origin(crop, x0, y0, pitch, theta)
-    return _Lattice(origin, pitch * math.cos(theta), pitch * math.sin(theta))
-
-
-def _highpass_crop(
-    img: NDArray[Any], expected_pitch: float
-) -> tuple[NDArray[np.float32], int, int]:
-    """Even-sized central crop (≤ 2048² px) minus its one-pitch box average, Hann-windowed; and its offset."""
-    h, w = img.shape
-    sy, sx = min(h, _FFT_CROP_PX) // 2 * 2, min(w, _FFT_CROP_PX) // 2 * 2  # even sizes
-    y0, x0 = (h - sy) // 2, (w - sx) // 2
-    crop = img[y0 : y0 + sy, x0 : x0 + sx].astype(np.float32)
-    # a box of about one pitch flattens the lattice: subtracting it removes the vignetting envelope
-    box = 2 * int(round(0.5 * expected_pitch)) + 1
-    crop -= cv2.blur(crop, (box, box), borderType=cv2.BORDER_REFLECT)
-    crop *= np.outer(np.hanning(sy), np.hanning(sx)).astype(np.float32)
-    return crop, x0, y0
-
-
-def _frequencies(power: NDArray[Any]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(fx, fy)`` in cycles/px of an ``rfft2`` spectrum of a ``(sy, sx)`` image, broadcastable."""
-    sy, nx = power.shape
-    sx = 2 * (nx - 1)
-    fx = np.asarray(np.fft.rfftfreq(sx), dtype=np.float64)[None, :]
-    fy = np.asarray(np.fft.fftfreq(sy), dtype=np.float64)[:, None]
-    return fx, fy
-
-
-def _strongest_peak(power: NDArray[Any], band: tuple[float, float]) -> tuple[float, float]:
-    """Sub-bin frequency ``(kx, ky)`` of the strongest peak with a period in ``band`` (px)."""
-    p_lo, p_hi = band
-    fx, fy = _frequencies(power)
-    fr = np.hypot(fx, fy)
-    inband = (fr >= 1.0 / p_hi) & (fr <= 1.0 / p_lo)
-    if not inband.any():
-        raise ValueError("white image too small to resolve the micro-image pitch")
-    ky, kx = np.unravel_index(int(np.argmax(np.where(inband, power, 0.0))), power.shape)
-    floor = max(float(np.median(power[(fr >= 0.7 / p_hi) & (fr <= 1.4 / p_lo)])), 1e-30)
-    ratio = float(power[ky, kx]) / floor
-    if not ratio > 200.0:
-        raise ValueError(
-            f"no microlens lattice found with a micro-image pitch in [{p_lo:.1f}, {p_hi:.1f}] px "
-            f"(spectral peak only {ratio:.0f}x the background): is this a white (flat-field) "
-            "image of this camera?"
-        )
-    return _refine_peak(power, int(ky), int(kx))
-
-
-def _power_at(power: NDArray[Any], k: tuple[float, float]) -> float:
-    """Spectral power at the local maximum nearest frequency ``k``."""
-    by, bx = _bin_of(power, k)
-    return float(power[by, bx])
-
-
-def _bin_of(power: NDArray[Any], k: tuple[float, float]) -> tuple[int, int]:
-    """The local-maximum bin ``(row, col)`` nearest frequency ``k`` (mirrored to ``kx >= 0``)."""
-    sy, nx = power.shape
-    sx = 2 * (nx - 1)
-    kx, ky = k
-    if kx < 0:
-        kx, ky = -kx, -ky
-    bx = min(int(round(kx * sx)), nx - 1)
-    by = int(round(ky * sy)) % sy
-    return _local_max(power, by, bx)
-
-
-def _both_fundamentals(power: NDArray[Any], k1: tuple[float, float]) -> tuple[float, float]:
-    """Pitch (px) and rotation θ (rad, in (-π/4, π/4]) averaged over the two perpendicular peaks."""
-    theta = (math.atan2(k1[1], k1[0]) + math.pi / 4) % (math.pi / 2) - math.pi / 4
-    kk = math.hypot(*k1)
-    c, s = math.cos(theta), math.sin(theta)
-    ks = [_refine_peak(power, *_bin_of(power, (ex * kk, ey * kk))) for ex, ey in ((c, s), (-s, c))]
-    pitch = 2.0 / (math.hypot(*ks[0]) + math.hypot(*ks[1]))
-    offsets = [
-        (math.atan2(ky, kx) - theta + math.pi / 4) % (math.pi / 2) - math.pi / 4 for kx, ky in ks
-    ]
-    return pitch, theta + 0.5 * sum(offsets)
-
-
-def _reject_harmonic(power: NDArray[Any], k: tuple[float, float], peak: float) -> None:
-    """``ValueError`` when the peak at ``k`` is a harmonic (k/2, or k/√2 at ±45°) of a coarser lattice."""
-    sy = power.shape[0]
-    sx = 2 * (power.shape[1] - 1)
-    kx, ky = k
-    for cx, cy in (
-        (0.5 * kx, 0.5 * ky),
-        (0.5 * (kx - ky), 0.5 * (kx + ky)),
-        (0.5 * (kx + ky), 0.5 * (ky - kx)),
-    ):
-        if abs(cx * sx) < 1.5 and abs(cy * sy) < 1.5:
-            continue  # too close to DC to tell
-        if _power_at(power, (cx, cy)) > 0.05 * peak:
-            raise ValueError(
-                f"the periodicity found at {1.0 / math.hypot(kx, ky):.1f} px is a harmonic of a "
-                f"lattice with a pitch of about {1.0 / math.hypot(cx, cy):.1f} px: check "
-                "lens_pitch_px (D/δ) and pitch_guess_px"
-            )
-
-
-def _local_max(power: NDArray[Any], by: int, bx: int) -> tuple[int, int]:
-    sy, sx = power.shape
-    best = (by, bx)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            yy, xx = (by + dy) % sy, bx + dx
-            if 0 <= xx < sx and power[yy, xx] > power[best]:
-                best = (yy, xx)
-    return best
-
-
-def _refine_peak(power: NDArray[Any], ky: int, kx: int) -> tuple[float, float]:
-    """Sub-bin peak position (Gaussian interpolation), as a frequency ``(kx, ky)`` in cycles/px."""
-    sy, nx = power.shape
-    sx = 2 * (nx - 1)
-
-    def ln(v: float) -> float:
-        return math.log(max(float(v), 1e-300))
-
-    def interp(lm: float, l0: float, lp: float) -> float:
-        den = lm - 2 * l0 + lp
-        return 0.0 if den >= 0 else 0.5 * (lm - lp) / den
-
-    l0 = ln(power[ky, kx])
-    dy = interp(ln(power[(ky - 1) % sy, kx]), l0, ln(power[(ky + 1) % sy, kx]))
-    dx = interp(ln(power[ky, kx - 1]), l0, ln(power[ky, kx + 1])) if 1 <= kx < nx - 1 else 0.0
-    fy = (ky if ky < sy // 2 else ky - sy) + dy
-    return ((kx + dx) / sx, fy / sy)
-
-
-def _phase_origin(
-    crop: NDArray[np.float32], x0: int, y0: int, pitch: float, theta: float
-) -> tuple[float, float]:
-    """A lattice node from the phases of the two fundamentals (bright discs have positive FT)."""
-    sy, sx = crop.shape
-    cx, cy = (sx - 1) / 2.0, (sy - 1) / 2.0
-    u = np.arange(sx) - cx
-    v = np.arange(sy) - cy
-    c, s = math.cos(theta), math.sin(theta)
-    phases = []
-    for ex, ey in ((c, s), (-s, c)):
-        kx, ky = ex / pitch, ey / pitch
-        row = np.exp(-2j * np.pi * kx * u).astype(np.complex64)
-        col = np.exp(-2j * np.pi * ky * v).astype(np.complex64)
-        val = complex(col @ (crop @ row))
-        phases.append(-np.angle(val) / (2 * np.pi))
-    # node n: e1·(n - C) = phase1·pitch, e2·(n - C) = phase2·pitch
-    ox = cx + x0 + pitch * (c * phases[0] - s * phases[1])
-    oy = cy + y0 + pitch * (s * phases[0] + c * phases[1])
-    return (float(ox), float(oy))
 
 
 # --------------------------------------------------------------------------- per-lens measurement
@@ -724,7 +530,7 @@ def _thresholds(
 
 def _fit_lattice(
     i: NDArray[np.int64], j: NDArray[np.int64], x: NDArray[np.float64], y: NDArray[np.float64]
-) -> _Lattice:
+) -> Lattice:
     """Least-squares similarity lattice ``x = ox + a·i - b·j``, ``y = oy + b·i + a·j``."""
     n = i.size
     fi, fj = i.astype(np.float64), j.astype(np.float64)
@@ -736,7 +542,7 @@ def _fit_lattice(
     A[n:, 2] = fj
     A[n:, 3] = fi
     sol, *_ = np.linalg.lstsq(A, np.concatenate([x, y]), rcond=None)
-    return _Lattice((float(sol[0]), float(sol[1])), float(sol[2]), float(sol[3]))
+    return Lattice((float(sol[0]), float(sol[1])), float(sol[2]), float(sol[3]))
 
 
 def _robust_fit(
@@ -748,7 +554,7 @@ def _robust_fit(
     *,
     outlier_sigma: float,
     outlier_floor_px: float,
-) -> tuple[_Lattice, NDArray[np.bool_]]:
+) -> tuple[Lattice, NDArray[np.bool_]]:
     """Fit with iterative rejection of centres farther than ``max(k·σ, floor)`` from the lattice."""
     keep = use.copy()
     lat = _fit_lattice(i[keep], j[keep], x[keep], y[keep])
@@ -803,7 +609,7 @@ def _dead_lenses(
 
 
 def _candidates(
-    lat: _Lattice, shape: tuple[int, int], margin: float
+    lat: Lattice, shape: tuple[int, int], margin: float
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
     """Lenses whose centre is on the sensor, those at least ``margin`` inside, and the count of the rest."""
     h, w = shape
@@ -864,7 +670,7 @@ def fit_mla_grid(
     if max_iterations < 1 or not tol_px > 0:
         raise ValueError("max_iterations must be >= 1 and tol_px > 0")
     say = progress or (lambda _msg: None)
-    lat = _fft_initial(img, lens_pitch_px, pitch_guess_px)
+    lat = initial_lattice(img, lens_pitch_px, pitch_guess_px)
     say(f"spectrum: pitch {lat.pitch:.3f} px, rotation {math.degrees(lat.theta):.4f} deg")
     n_workers = workers or min(4, os.cpu_count() or 1)
     pool = ThreadPoolExecutor(n_workers) if n_workers > 1 else None
@@ -891,7 +697,7 @@ def fit_mla_grid(
 
 def _setup(
     img: NDArray[Any],
-    lat: _Lattice,
+    lat: Lattice,
     dead_fraction: float,
     max_dark_fraction: float,
     max_nonflat_fraction: float,
@@ -926,7 +732,7 @@ def _setup(
 
 def _fit(
     img: NDArray[Any],
-    lat: _Lattice,
+    lat: Lattice,
     *,
     lens_pitch_px: float,
     pp: tuple[float, float],
@@ -1014,7 +820,7 @@ class _Round:
     n_border: int
 
 
-def _max_move(old: _Lattice, new: _Lattice, w: int, h: int) -> float:
+def _max_move(old: Lattice, new: Lattice, w: int, h: int) -> float:
     """Largest displacement (px) between two lattices' nodes at the sensor corners."""
     g_old, g_new = old.grid(), new.grid()
     fi, fj = g_old.fractional_index(
@@ -1025,7 +831,7 @@ def _max_move(old: _Lattice, new: _Lattice, w: int, h: int) -> float:
     return float(np.max(np.hypot(nx - ox, ny - oy)))
 
 
-def _recentre(lat: _Lattice, pp: tuple[float, float]) -> tuple[_Lattice, int, int]:
+def _recentre(lat: Lattice, pp: tuple[float, float]) -> tuple[Lattice, int, int]:
     """The same lattice with node (0, 0) moved to the node nearest the principal point.
 
     Returns the new lattice and the old index ``(di, dj)`` of the new origin
@@ -1033,7 +839,7 @@ def _recentre(lat: _Lattice, pp: tuple[float, float]) -> tuple[_Lattice, int, in
     """
     ni, nj = lat.grid().nearest(np.array([pp[0]]), np.array([pp[1]]))
     ox, oy = lat.centre(ni, nj)
-    return _Lattice((float(ox[0]), float(oy[0])), lat.a, lat.b), int(ni[0]), int(nj[0])
+    return Lattice((float(ox[0]), float(oy[0])), lat.a, lat.b), int(ni[0]), int(nj[0])
 
 
 def _check_white(
@@ -1064,7 +870,7 @@ def _check_white(
 
 def _result(
     img: NDArray[Any],
-    lat: _Lattice,
+    lat: Lattice,
     prm: _Params,
     ii: NDArray[np.int64],
     jj: NDArray[np.int64],
@@ -1119,7 +925,7 @@ def _result(
 
 
 def _radial_profile_normalized(
-    img: NDArray[Any], lat: _Lattice, ii: NDArray[np.int64], jj: NDArray[np.int64], prm: _Params
+    img: NDArray[Any], lat: Lattice, ii: NDArray[np.int64], jj: NDArray[np.int64], prm: _Params
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Profile of ≤ 64 used lenses spread over the sensor, in 0.25 px bins."""
     x, y = lat.centre(ii, jj)
