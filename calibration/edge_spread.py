@@ -152,7 +152,6 @@ class LeverGroup:
         """What :meth:`BinnedEsf.replaced` needs (not the standard errors: the merged
         function keeps the whole one's), rounded to far below the noise."""
         esf = self.esf
-        weight = esf.weight if esf.weight is not None else esf.count
         return {
             "lever_px": round(self.lever_px, 3),
             "lever_sd_px": round(self.lever_sd_px, 3),
@@ -160,7 +159,7 @@ class LeverGroup:
             "x_sd_px": np.round(esf.position_sd_px, 4).tolist(),
             "value": np.round(esf.value, 5).tolist(),
             "count": esf.count.tolist(),
-            "weight": np.round(np.asarray(weight, dtype=np.float64), 3).tolist(),
+            "weight": np.round(esf.sample_weight, 3).tolist(),
             "profiles": esf.profiles,
         }
 
@@ -220,6 +219,11 @@ class BinnedEsf:
             return np.full(self.x.shape, ESF_BIN_PX / np.sqrt(12.0))
         return self.x_sd
 
+    @property
+    def sample_weight(self) -> NDArray[np.float64]:
+        """The sum of the samples' weights per bin (``weight``; the counts when not recorded)."""
+        return np.asarray(self.weight if self.weight is not None else self.count, np.float64)
+
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "x_px": np.round(self.x, 5).tolist(),
@@ -269,67 +273,45 @@ class BinnedEsf:
         if not self.lever_groups or not (np.isfinite(scale_error) and np.isfinite(fixed)):
             return self
         se2 = float(scale_se) ** 2 if np.isfinite(scale_se) else 0.0
-        n_bins = int(round(2 * ESF_HALF_PX / ESF_BIN_PX))
-        sn, snx, snxx, snv = (np.zeros(n_bins) for _ in range(4))
-        count = np.zeros(n_bins, dtype=np.int64)
-        jitter2 = 0.0
-        for g in self.lever_groups:
-            x = g.esf.x - scale_error * g.lever_px
-            b = np.clip(np.floor((x + ESF_HALF_PX) / ESF_BIN_PX).astype(np.int64), 0, n_bins - 1)
-            n = np.asarray(g.esf.weight if g.esf.weight is not None else g.esf.count, float)
-            np.add.at(sn, b, n)
-            np.add.at(snx, b, n * x)
-            np.add.at(snxx, b, n * (x**2 + g.esf.position_sd_px**2))
-            np.add.at(snv, b, n * g.esf.value)
-            np.add.at(count, b, g.esf.count)
-            jitter2 += g.esf.profiles * (
-                fixed**2 + scale_error**2 * g.lever_sd_px**2 + se2 * g.lever_px**2
+        parts = [
+            replace(
+                g.esf.shifted(-scale_error * g.lever_px),
+                jitter_px=float(
+                    np.sqrt(fixed**2 + scale_error**2 * g.lever_sd_px**2 + se2 * g.lever_px**2)
+                ),
             )
-        keep = count >= 3
-        mean = snx[keep] / sn[keep]
+            for g in self.lever_groups
+        ]
+        sums = _BinSums.of(parts, [p.sample_weight for p in parts])
+        keep = sums.count >= 3
+        mean = sums.swx[keep] / sums.sw[keep]
         return BinnedEsf(
             mean,
-            snv[keep] / sn[keep],
+            sums.swv[keep] / sums.sw[keep],
             # the groups' bins hold few samples each, some of one sub-pixel phase: their
             # scatter says little, so the samples keep their weights in the whole function
             # and each bin the whole function's standard error where it now lies
             np.interp(mean, self.x, self.se),
-            count[keep],
+            sums.count[keep],
             self.profiles,
-            np.sqrt(np.maximum(snxx[keep] / sn[keep] - mean**2, 0.0)),
-            float(np.sqrt(jitter2 / max(sum(g.esf.profiles for g in self.lever_groups), 1))),
+            sums.position_sd(keep),
+            _pooled_jitter(parts),
         )
 
     @staticmethod
     def merge(parts: Sequence[BinnedEsf]) -> BinnedEsf:
         """Inverse-variance weighted mean of functions binned on the same bins (their
         jitter variances averaged with the profile counts as weights)."""
-        n_bins = int(round(2 * ESF_HALF_PX / ESF_BIN_PX))
-        sw = np.zeros(n_bins)
-        swx = np.zeros(n_bins)
-        swxx = np.zeros(n_bins)
-        swv = np.zeros(n_bins)
-        count = np.zeros(n_bins, dtype=np.int64)
-        for p in parts:
-            b = np.clip(np.floor((p.x + ESF_HALF_PX) / ESF_BIN_PX).astype(np.int64), 0, n_bins - 1)
-            w = 1.0 / np.maximum(p.se, 1e-6) ** 2
-            np.add.at(sw, b, w)
-            np.add.at(swx, b, w * p.x)
-            np.add.at(swxx, b, w * (p.x**2 + p.position_sd_px**2))
-            np.add.at(swv, b, w * p.value)
-            np.add.at(count, b, p.count)
-        keep = sw > 0
-        mean = swx[keep] / sw[keep]
-        n_prof = np.array([p.profiles for p in parts], dtype=np.float64)
-        jitter2 = np.array([p.jitter_px**2 for p in parts], dtype=np.float64)
+        sums = _BinSums.of(parts, [1.0 / np.maximum(p.se, 1e-6) ** 2 for p in parts])
+        keep = sums.sw > 0
         return BinnedEsf(
-            mean,
-            swv[keep] / sw[keep],
-            1.0 / np.sqrt(sw[keep]),
-            count[keep],
+            sums.swx[keep] / sums.sw[keep],
+            sums.swv[keep] / sums.sw[keep],
+            1.0 / np.sqrt(sums.sw[keep]),
+            sums.count[keep],
             sum(p.profiles for p in parts),
-            np.sqrt(np.maximum(swxx[keep] / sw[keep] - mean**2, 0.0)),
-            float(np.sqrt(np.sum(n_prof * jitter2) / max(float(np.sum(n_prof)), 1.0))),
+            sums.position_sd(keep),
+            _pooled_jitter(parts),
         )
 
     def centre_px(self, *, half_window_px: float = 3.0) -> float:
@@ -369,6 +351,44 @@ class BinnedEsf:
         deficit = e - (x > 0)
         var = -2.0 * float(np.sum(x * deficit * widths))
         return float(np.sqrt(var)) if var > 0 else 0.0
+
+
+@dataclass(frozen=True)
+class _BinSums:
+    """Weighted sums over the functions' bins that fall in each standard bin: weights,
+    positions, squared positions (with each bin's own spread) and values; sample counts."""
+
+    sw: NDArray[np.float64]
+    swx: NDArray[np.float64]
+    swxx: NDArray[np.float64]
+    swv: NDArray[np.float64]
+    count: NDArray[np.int64]
+
+    @classmethod
+    def of(cls, parts: Sequence[BinnedEsf], weights: Sequence[NDArray[np.float64]]) -> _BinSums:
+        n_bins = int(round(2 * ESF_HALF_PX / ESF_BIN_PX))
+        sw, swx, swxx, swv = (np.zeros(n_bins) for _ in range(4))
+        count = np.zeros(n_bins, dtype=np.int64)
+        for p, w in zip(parts, weights, strict=True):
+            b = np.clip(np.floor((p.x + ESF_HALF_PX) / ESF_BIN_PX).astype(np.int64), 0, n_bins - 1)
+            np.add.at(sw, b, w)
+            np.add.at(swx, b, w * p.x)
+            np.add.at(swxx, b, w * (p.x**2 + p.position_sd_px**2))
+            np.add.at(swv, b, w * p.value)
+            np.add.at(count, b, p.count)
+        return cls(sw, swx, swxx, swv, count)
+
+    def position_sd(self, keep: NDArray[np.bool_]) -> NDArray[np.float64]:
+        """Spread of the sample positions in each kept bin (px)."""
+        mean = self.swx[keep] / self.sw[keep]
+        return np.sqrt(np.maximum(self.swxx[keep] / self.sw[keep] - mean**2, 0.0))
+
+
+def _pooled_jitter(parts: Sequence[BinnedEsf]) -> float:
+    """RMS jitter of pooled functions: their jitter variances weighted by profile counts."""
+    n_prof = np.array([p.profiles for p in parts], dtype=np.float64)
+    jitter2 = np.array([p.jitter_px**2 for p in parts], dtype=np.float64)
+    return float(np.sqrt(np.sum(n_prof * jitter2) / max(float(np.sum(n_prof)), 1.0)))
 
 
 def flat_distance(width_px: float) -> float:

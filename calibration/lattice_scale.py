@@ -44,14 +44,12 @@ OUTLIER_SIGMAS = 4.0
 class SmoothQ:
     """One corner's ``Q`` per frame as measured and as smoothed over the sweep."""
 
-    frame: NDArray[np.int64]
     measured: NDArray[np.float64]
     smooth: NDArray[np.float64]
     smooth_se: NDArray[np.float64]
 
 
 def smooth_corner_q(
-    frame: NDArray[np.int64] | Sequence[int],
     object_distance_mm: NDArray[np.float64] | Sequence[float],
     q: NDArray[np.float64] | Sequence[float],
     q_se: NDArray[np.float64] | Sequence[float],
@@ -67,7 +65,6 @@ def smooth_corner_q(
     covariance (scaled by the reduced chi-square when above 1). None with fewer
     than ``MIN_FRAMES`` usable frames.
     """
-    frame = np.asarray(frame, dtype=np.int64)
     u = np.asarray(object_distance_mm, dtype=np.float64)
     qv = np.asarray(q, dtype=np.float64)
     qse = np.asarray(q_se, dtype=np.float64)
@@ -99,7 +96,7 @@ def smooth_corner_q(
     fitted = design @ coef
     fitted_se = np.sqrt(np.maximum(np.einsum("fi,ij,fj->f", design, cov, design), 0.0))
     smooth = np.where(np.isfinite(u) & (u > main_focal_mm), 1.0 / fitted, np.nan)
-    return SmoothQ(frame, qv, smooth, fitted_se * smooth**2)
+    return SmoothQ(qv, smooth, fitted_se * smooth**2)
 
 
 def replace_profiles(
@@ -120,7 +117,6 @@ def replace_profiles(
         idx = [k for k, o in enumerate(out) if o.corner == corner]
         frames = [out[k].frame for k in idx]
         fit = smooth_corner_q(
-            frames,
             [object_distance_mm.get(f, np.nan) for f in frames],
             [out[k].Q for k in idx],
             [q_se.get((f, corner), np.nan) for f in frames],

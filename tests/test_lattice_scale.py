@@ -40,7 +40,7 @@ def _sweep(seed: int, n: int = 31) -> tuple[np.ndarray, ...]:
 
 def test_the_smoothed_scale_is_far_closer_to_the_truth_than_each_frame() -> None:
     truth, measured, se, u = _sweep(1)
-    fit = smooth_corner_q(np.arange(truth.size), u, measured, se, main_focal_mm=F * 1.02)
+    fit = smooth_corner_q(u, measured, se, main_focal_mm=F * 1.02)
     assert fit is not None
     own = np.sqrt(np.mean((measured - truth) ** 2))
     smooth = np.sqrt(np.mean((fit.smooth - truth) ** 2))
@@ -52,7 +52,7 @@ def test_its_standard_error_covers_its_error_over_seeds() -> None:
     z = []
     for seed in range(200):
         truth, measured, se, u = _sweep(seed)
-        fit = smooth_corner_q(np.arange(truth.size), u, measured, se, main_focal_mm=F * 0.98)
+        fit = smooth_corner_q(u, measured, se, main_focal_mm=F * 0.98)
         assert fit is not None
         z.append((fit.smooth[15] - truth[15]) / fit.smooth_se[15])
     inside = float(np.mean(np.abs(np.array(z)) < 1.0))
@@ -62,7 +62,7 @@ def test_its_standard_error_covers_its_error_over_seeds() -> None:
 def test_a_wild_frame_does_not_pull_the_curve() -> None:
     truth, measured, se, u = _sweep(2)
     measured[7] *= 1.02  # a mis-identified micro-image: 2 % off, far beyond its error
-    fit = smooth_corner_q(np.arange(truth.size), u, measured, se, main_focal_mm=F)
+    fit = smooth_corner_q(u, measured, se, main_focal_mm=F)
     assert fit is not None
     assert abs(fit.smooth[7] - truth[7]) < 4.0 * fit.smooth_se[7]
     assert np.max(np.abs(fit.smooth - truth) / fit.smooth_se) < 4.0
@@ -70,7 +70,7 @@ def test_a_wild_frame_does_not_pull_the_curve() -> None:
 
 def test_too_few_frames_give_no_curve() -> None:
     truth, measured, se, u = _sweep(3, n=MIN_FRAMES - 1)
-    assert smooth_corner_q(np.arange(truth.size), u, measured, se, main_focal_mm=F) is None
+    assert smooth_corner_q(u, measured, se, main_focal_mm=F) is None
 
 
 def _esf(shift_px: float) -> BinnedEsf:
