@@ -126,9 +126,6 @@ class EdgeProfiles:
 LEVER_GROUPS = 6
 """Groups by lever (:class:`LeverGroup`) a corner's profiles are also binned in."""
 
-_PRE_CLUSTERS = 48
-"""Distinct levers are first cut into at most this many runs at the widest gaps (speed)."""
-
 
 @dataclass(frozen=True)
 class LeverGroup:
@@ -574,13 +571,9 @@ def _lever_groups(
     w = weight[:, 0]
     rel = lever - float(np.sum(w * lever) / np.sum(w))
     values, inverse = np.unique(rel, return_inverse=True)
-    # clusters of neighbouring distinct values: at most PRE_CLUSTERS to start with, cut at
-    # the widest gaps between values, then joined pairwise by Ward's criterion
-    cut = np.zeros(values.size, dtype=np.int64)
-    if values.size > _PRE_CLUSTERS:
-        widest = np.argpartition(np.diff(values), -(_PRE_CLUSTERS - 1))[-(_PRE_CLUSTERS - 1) :]
-        cut[widest + 1] = 1
-    owner = np.cumsum(cut)  # cluster of each distinct value
+    # clusters of neighbouring distinct values, one per value to start with, joined pairwise
+    # by Ward's criterion
+    owner = np.arange(values.size)  # cluster of each distinct value
     per_value = np.bincount(inverse, minlength=values.size).astype(np.float64)
     n = np.bincount(owner, per_value)
     s1 = np.bincount(owner, per_value * values)
