@@ -156,7 +156,7 @@ class LeverGroup:
             "x_sd_px": np.round(esf.position_sd_px, 4).tolist(),
             "value": np.round(esf.value, 5).tolist(),
             "count": esf.count.tolist(),
-            "weight": np.round(esf.sample_weight, 3).tolist(),
+            "weight": _round_significant(esf.sample_weight, 4).tolist(),
             "profiles": esf.profiles,
         }
 
@@ -280,7 +280,7 @@ class BinnedEsf:
             for g in self.lever_groups
         ]
         sums = _BinSums.of(parts, [p.sample_weight for p in parts])
-        keep = sums.count >= 3
+        keep = (sums.count >= 3) & (sums.sw > 0)
         mean = sums.swx[keep] / sums.sw[keep]
         return BinnedEsf(
             mean,
@@ -379,6 +379,19 @@ class _BinSums:
         """Spread of the sample positions in each kept bin (px)."""
         mean = self.swx[keep] / self.sw[keep]
         return np.sqrt(np.maximum(self.swxx[keep] / self.sw[keep] - mean**2, 0.0))
+
+
+def _round_significant(values: NDArray[np.float64], digits: int) -> NDArray[np.float64]:
+    """``values`` rounded to ``digits`` significant digits each (zeros stay zero): sample
+    weights span decades (a profile's weight is its contrast squared), and rounding them
+    to fixed decimals set the weights of dim profiles' bins to 0."""
+    v = np.asarray(values, dtype=np.float64)
+    out = v.copy()
+    nonzero = np.isfinite(v) & (v != 0)
+    exponent = np.floor(np.log10(np.abs(v[nonzero])))
+    scale = 10.0 ** (digits - 1 - exponent)
+    out[nonzero] = np.round(v[nonzero] * scale) / scale
+    return out
 
 
 def _pooled_jitter(parts: Sequence[BinnedEsf]) -> float:

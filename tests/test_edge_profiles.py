@@ -169,3 +169,29 @@ def test_placed_again_with_no_error_is_the_whole_function() -> None:
     np.testing.assert_allclose(again.value, esf.value, atol=1e-5)  # JSON rounding
     np.testing.assert_allclose(again.se, esf.se, rtol=1e-3)  # JSON rounding
     np.testing.assert_allclose(again.position_sd_px, esf.position_sd_px, atol=1e-4)
+
+
+def test_dim_profiles_keep_their_weights_through_json() -> None:
+    """A profile weighs its contrast squared, so weights span decades: a frame whose left
+    half is 300x dimmer (weights 1e-5 of the others) still gives finite functions placed
+    again, the dim bins kept (rounded to fixed decimals their weights were 0: NaN bins)."""
+    frame, lens, image, coef = _frame()
+    dim = frame.astype(np.float64)
+    dim[:, : dim.shape[1] // 2] /= 300.0
+    along = np.array([1.0, 0.0, 0.0])
+    placed = half_edge_profiles(
+        dim,
+        CornerLattice(coef=coef, covariance=1e-8 * np.outer(along, along)),
+        lens,
+        image,
+        _window(),
+    )
+    esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
+    assert esf is not None and esf.lever_groups
+    weights = np.concatenate([g.esf.sample_weight for g in esf.lever_groups])
+    assert weights.min() < 1e-3 * weights.max()  # the dim profiles' bins are there
+    again = BinnedEsf.from_dict(esf.to_dict())
+    for error in (0.0, 1e-3):
+        moved = again.replaced(error, 1e-4)
+        assert np.all(np.isfinite(moved.x)) and np.all(np.isfinite(moved.value))
+    np.testing.assert_allclose(again.replaced(0.0, 0.0).value, esf.value, atol=1e-4)
