@@ -264,7 +264,7 @@ class BinnedEsf:
         groups' bins are merged with their samples' weights (``weight``), so with no
         error this is the whole function again, each merged bin keeping the whole
         function's standard error at its position.
-        Without lever groups (or a finite error) the function itself.
+        Without lever groups (or without a finite error) the function itself.
         """
         fixed = self.jitter_fixed_scale_px
         if not self.lever_groups or not (np.isfinite(scale_error) and np.isfinite(fixed)):
@@ -281,10 +281,10 @@ class BinnedEsf:
         ]
         sums = _BinSums.of(parts, [p.sample_weight for p in parts])
         keep = (sums.count >= 3) & (sums.sw > 0)
-        mean = sums.swx[keep] / sums.sw[keep]
+        mean = sums.mean_x(keep)
         return BinnedEsf(
             mean,
-            sums.swv[keep] / sums.sw[keep],
+            sums.mean_value(keep),
             # the groups' bins hold few samples each, some of one sub-pixel phase: their
             # scatter says little, so the samples keep their weights in the whole function
             # and each bin the whole function's standard error where it now lies
@@ -302,8 +302,8 @@ class BinnedEsf:
         sums = _BinSums.of(parts, [1.0 / np.maximum(p.se, 1e-6) ** 2 for p in parts])
         keep = sums.sw > 0
         return BinnedEsf(
-            sums.swx[keep] / sums.sw[keep],
-            sums.swv[keep] / sums.sw[keep],
+            sums.mean_x(keep),
+            sums.mean_value(keep),
             1.0 / np.sqrt(sums.sw[keep]),
             sums.count[keep],
             sum(p.profiles for p in parts),
@@ -375,9 +375,17 @@ class _BinSums:
             np.add.at(count, b, p.count)
         return cls(sw, swx, swxx, swv, count)
 
+    def mean_x(self, keep: NDArray[np.bool_]) -> NDArray[np.float64]:
+        """Weighted mean sample position of each kept bin (px)."""
+        return np.asarray(self.swx[keep] / self.sw[keep], dtype=np.float64)
+
+    def mean_value(self, keep: NDArray[np.bool_]) -> NDArray[np.float64]:
+        """Weighted mean value of each kept bin."""
+        return np.asarray(self.swv[keep] / self.sw[keep], dtype=np.float64)
+
     def position_sd(self, keep: NDArray[np.bool_]) -> NDArray[np.float64]:
         """Spread of the sample positions in each kept bin (px)."""
-        mean = self.swx[keep] / self.sw[keep]
+        mean = self.mean_x(keep)
         return np.sqrt(np.maximum(self.swxx[keep] / self.sw[keep] - mean**2, 0.0))
 
 

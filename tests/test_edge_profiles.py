@@ -150,10 +150,10 @@ def test_a_shift_common_to_every_profile_is_not_counted_as_jitter() -> None:
     assert _placement_jitter(mixed, sigma) == pytest.approx(0.1)
 
 
-def test_placed_again_with_no_error_is_the_whole_function() -> None:
-    """The lever groups hold the same samples with the same weights: merged back without a
-    shift they are the pooled function, bin for bin."""
-    frame, lens, image, coef = _frame()
+def _scale_only_esf(
+    frame: np.ndarray, lens: LensGrid, image: LensGrid, coef: tuple[float, float, float]
+) -> BinnedEsf:
+    """The frame's pooled function, its lattice uncertain in the scale only (lever groups)."""
     along = np.array([1.0, 0.0, 0.0])
     placed = half_edge_profiles(
         frame,
@@ -164,6 +164,13 @@ def test_placed_again_with_no_error_is_the_whole_function() -> None:
     )
     esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
     assert esf is not None and esf.lever_groups
+    return esf
+
+
+def test_placed_again_with_no_error_is_the_whole_function() -> None:
+    """The lever groups hold the same samples with the same weights: merged back without a
+    shift they are the pooled function, bin for bin."""
+    esf = _scale_only_esf(*_frame())
     again = BinnedEsf.from_dict(esf.to_dict()).replaced(0.0, 0.0)
     np.testing.assert_allclose(again.x, esf.x, atol=1e-4)  # JSON rounding
     np.testing.assert_allclose(again.value, esf.value, atol=1e-5)  # JSON rounding
@@ -178,16 +185,7 @@ def test_dim_profiles_keep_their_weights_through_json() -> None:
     frame, lens, image, coef = _frame()
     dim = frame.astype(np.float64)
     dim[:, : dim.shape[1] // 2] /= 300.0
-    along = np.array([1.0, 0.0, 0.0])
-    placed = half_edge_profiles(
-        dim,
-        CornerLattice(coef=coef, covariance=1e-8 * np.outer(along, along)),
-        lens,
-        image,
-        _window(),
-    )
-    esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
-    assert esf is not None and esf.lever_groups
+    esf = _scale_only_esf(dim, lens, image, coef)
     weights = np.concatenate([g.esf.sample_weight for g in esf.lever_groups])
     assert weights.min() < 1e-3 * weights.max()  # the dim profiles' bins are there
     again = BinnedEsf.from_dict(esf.to_dict())
