@@ -61,6 +61,14 @@ class CornerOptions:
     max_block_offset_px: float = 3.0
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
+    white_curvature_px2: float = 0.0
+    """Curvature ``c`` of the white image's ``-log W`` inside the micro-images (px⁻²,
+    :class:`calibration.shading.WhiteShading`): edge profiles are flat-fielded by
+    ``exp(-(c/2)·r²)`` about their micro-image's centre before their levels are read."""
+    white_background: float = 0.0
+    white_tilt_curvature_px2: float = 0.0
+    """The angular shading's curvature (px⁻²) that tilts off-axis micro-images' shading."""
+    """The white image's dark level (counts), the offset the flat-field leaves alone."""
 
 
 @dataclass

@@ -67,12 +67,20 @@ class ProfileWindow:
     """Where profiles may be cut (pixels): ``plateau_px`` the radius of each
     micro-image's fully lit interior, ``clearance_px`` the least distance from
     the corner along the edge, ``reach_px`` the largest, ``half_px`` the
-    profile's half length (``2·half_px + 1`` samples)."""
+    profile's half length (``2·half_px + 1`` samples); ``curvature_px2`` the white
+    image's curvature ``c`` of ``-log W`` inside the micro-images and ``background`` its
+    dark level (counts), ``tilt_curvature_px2`` the angular shading's curvature that tilts
+    the micro-images off the axis: every sample above that level is divided by the white
+    image's smooth shading ``exp(-c_t·(c_i - m_i)·(s - c_i) - (c/2)·|s - c_i|²)`` about its
+    micro-image's centre ``c_i`` (``m_i`` the lens centre)."""
 
     plateau_px: float
     clearance_px: float
     reach_px: float
     half_px: int = 6
+    curvature_px2: float = 0.0
+    background: float = 0.0
+    tilt_curvature_px2: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -120,10 +128,15 @@ def half_edge_profiles(
     parts = []
     gradients = []
     for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
+        tilt = (-window.tilt_curvature_px2 * (cx - mx), -window.tilt_curvature_px2 * (cy - my))
         if axis == 0:
-            cut = _cut(image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False)
+            cut = _cut(
+                image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False, tilt
+            )
         else:
-            cut = _cut(image, cy, cx, sy, sx, lattice.slope_h, lattice.half_px[1], window, True)
+            cut = _cut(
+                image, cy, cx, sy, sx, lattice.slope_h, lattice.half_px[1], window, True, tilt[::-1]
+            )
         if cut is None:
             continue
         x, y, lens, half, sign = cut
@@ -189,6 +202,7 @@ def _cut(
     half_offset: float,
     window: ProfileWindow,
     transposed: bool,
+    gradient: tuple[NDArray[np.float64], NDArray[np.float64]],
 ) -> (
     tuple[
         NDArray[np.float64],
@@ -245,6 +259,16 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
+    if window.curvature_px2 or window.tilt_curvature_px2:
+        # flat field: the white image's smooth shading about the micro-image centre
+        da = across_idx - centre_across[lens][:, None]
+        db = dy[lens, line][:, None]
+        log_w = (
+            gradient[0][lens][:, None] * da
+            + gradient[1][lens][:, None] * db
+            - 0.5 * window.curvature_px2 * (da * da + db * db)
+        )
+        values = window.background + (values - window.background) * np.exp(-log_w)
     lens = lens.astype(np.int64)
     # dark side negative: the sign of each half-edge from its profiles' ends
     half = after[lens, line]

@@ -11,7 +11,11 @@ step with levels read off its flat tails only:
 relative drift of both levels across the edge in block ``k`` (vignetting and
 cos⁴ make the brightness change across a micro-image, and the change
 multiplies dark and light alike); ``x_flat``: beyond the blur
-(:func:`flat_distance`). The samples nearer the edge are then
+(:func:`flat_distance`). Profiles flat-fielded by the white image
+(:mod:`calibration.edge_profiles`) have no drift left and are read with
+``γ = 0``: a fitted drift takes the still-falling tails of a diffraction-limited
+edge (1/x, 5-9 % short of the levels 4-6 px out) for vignetting and bends the
+function by dividing them out. The samples nearer the edge are then
 ``E(x) = (y/(1 + γ_k·x) - B_p)/C_p`` with no shape imposed: a template fitted
 to the whole profile would pull each profile's levels toward the template
 wherever the two differ near the edge, a bias that depends on the sampling
@@ -441,7 +445,11 @@ def profile_half_px(width_px: float, *, minimum: int, maximum: int) -> int:
 
 
 def _tail_normalise(
-    prof: EdgeProfiles, x_flat: float, *, iterations: int = 4
+    prof: EdgeProfiles,
+    x_flat: float,
+    *,
+    iterations: int = 4,
+    drift: bool = True,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(z, C)``: samples mapped to the unit step by levels read off the flat tails.
 
@@ -449,7 +457,8 @@ def _tail_normalise(
     ``|x| ≥ x_flat``: for given drifts ``γ_k`` the levels of each profile are a
     2×2 linear problem, solved in closed form and projected out (variable
     projection), and each block's ``γ_k`` takes Gauss–Newton steps on what is
-    left. ``C`` is NaN for a profile with fewer than 2 tail samples on either side.
+    left (``drift`` false: no drift, profiles already flat-fielded). ``C`` is NaN
+    for a profile with fewer than 2 tail samples on either side.
     """
     x, y, block = prof.x, prof.y, prof.block
     n_blocks = int(block.max()) + 1
@@ -459,7 +468,7 @@ def _tail_normalise(
     step = light.astype(np.float64)
     gamma = np.zeros(n_blocks)
     b = c = np.zeros(prof.count)
-    for _ in range(iterations):
+    for _ in range(iterations if drift else 1):
         one = 1.0 + gamma[block][:, None] * x
         col_b, col_c = one * tail, one * step  # (the light tail is inside the tails)
         aa, ab, bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
@@ -476,7 +485,8 @@ def _tail_normalise(
         g_perp = g - pb[:, None] * col_b - pc[:, None] * col_c
         num = np.bincount(block, np.nan_to_num(_dot(g_perp, resid)), n_blocks)
         den = np.bincount(block, np.nan_to_num(_dot(g_perp, g_perp)), n_blocks)
-        gamma = gamma + np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+        if drift:
+            gamma = gamma + np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
     one = 1.0 + gamma[block][:, None] * x
     z = (y / one - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
     enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)
@@ -535,6 +545,7 @@ def frame_esf(
     jitter_px: float = 0.0,
     jitter_fixed_scale_px: float = float("nan"),
     max_flat_px: float = np.inf,
+    drift: bool = True,
 ) -> BinnedEsf | None:
     """The binned, normalised edge-spread function of pooled profiles (None if too few).
 
@@ -550,7 +561,8 @@ def frame_esf(
     """
     if prof.count < MIN_PROFILES:
         return None
-    z, c = _tail_normalise(prof, min(flat_distance(start_width_px), max_flat_px))
+    x_flat = min(flat_distance(start_width_px), max_flat_px)
+    z, c = _tail_normalise(prof, x_flat, drift=drift)
     good = np.isfinite(c) & (c > 0) & np.all(np.isfinite(z), axis=1)
     if good.sum() < MIN_PROFILES:
         return None

@@ -393,6 +393,9 @@ def _edge_spread(
         clearance_px=opts.blur_clearance_px,
         reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
         half_px=half_px,
+        curvature_px2=opts.white_curvature_px2,
+        background=opts.white_background,
+        tilt_curvature_px2=opts.white_tilt_curvature_px2,
     )
     assert fit.lattice is not None
     placed = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
@@ -402,4 +405,5 @@ def _edge_spread(
         jitter_px=placed.jitter_px,
         jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
         max_flat_px=half_px - TAIL_SAMPLES,
+        drift=not (opts.white_curvature_px2 or opts.white_tilt_curvature_px2),
     )

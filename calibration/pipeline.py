@@ -31,7 +31,7 @@ from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
-from .shading import measure_shading
+from .shading import WhiteShading, measure_shading
 from .summary import (
     CalibrationError,
     CalibrationOptions,
@@ -111,6 +111,15 @@ class FrameAnalyzer:
                 options.corner, blur_radius_fraction=shading.plateau_fraction
             )
             options = dataclasses.replace(options, corner=corner)
+        if np.isfinite(shading.curvature_px2):
+            # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
+            corner = dataclasses.replace(
+                options.corner,
+                white_curvature_px2=shading.curvature_px2,
+                white_background=float(grid.background),
+                white_tilt_curvature_px2=_tilt_or_zero(shading),
+            )
+            options = dataclasses.replace(options, corner=corner)
         return cls(geometry, dataclasses.replace(grid, shading=shading), options)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -158,6 +167,13 @@ class FrameAnalyzer:
 
 
 _WORKER: dict[str, Any] = {}
+
+
+def _tilt_or_zero(shading: WhiteShading) -> float:
+    """The curvature that tilts the micro-images' shading across the sensor (px⁻²): the
+    measured tilt, else the angular curvature, else 0."""
+    c = shading.tilt_curvature_px2 if shading.tilt_measured else shading.angular_curvature()[0]
+    return float(c) if np.isfinite(c) else 0.0
 
 
 def _worker_init(root: str, analyzer: FrameAnalyzer) -> None:

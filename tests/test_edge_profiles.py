@@ -81,6 +81,49 @@ def test_no_profile_reaches_the_corner_or_leaves_the_plateau() -> None:
     assert np.all(np.abs(first.mean(axis=1) - last.mean(axis=1)) > 0.9)
 
 
+def test_profiles_are_flat_fielded_by_the_white_images_shading() -> None:
+    """A micro-image's brightness is the white image's smooth shading about its centre
+    ``c_i``: a bowl (the rims blurred inwards, vignetting; curvature ``c``) tilted by the
+    angular shading off the axis (``-c_t·(c_i - m_i)``). Given both, every profile is
+    flat-fielded before its levels are read, and the pooled function is the edge spread
+    without any drift fitted; left in, the bowl bends the function's tails."""
+    frame, lens, image, coef = _frame()
+    height, width = frame.shape
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    i, j = image.nearest(xx, yy)
+    cx, cy = image.centre(i, j)
+    mx, my = lens.centre(i, j)
+    curvature, tilt, gap = 4e-4, 2e-3, 10.0
+    log_w = -tilt * ((cx - mx) * (xx - cx) + (cy - my) * (yy - cy)) - 0.5 * curvature * (
+        (xx - cx) ** 2 + (yy - cy) ** 2
+    )
+    shaded = gap + (frame - gap) * np.exp(log_w)
+    lattice = CornerLattice(coef=coef, covariance=np.zeros((3, 3)))
+    window = ProfileWindow(
+        plateau_px=RADIUS,
+        clearance_px=3.0,
+        reach_px=400.0,
+        half_px=6,
+        curvature_px2=curvature,
+        background=gap,
+        tilt_curvature_px2=tilt,
+    )
+    flat = frame_esf(
+        half_edge_profiles(shaded, lattice, lens, image, window).profiles,
+        start_width_px=SIGMA,
+        drift=False,
+    )
+    assert flat is not None
+    np.testing.assert_allclose(flat.value, ndtr(flat.x / SIGMA), atol=0.004)
+    bent = frame_esf(
+        half_edge_profiles(shaded, lattice, lens, image, _window()).profiles,
+        start_width_px=SIGMA,
+        drift=False,
+    )
+    assert bent is not None
+    assert np.max(np.abs(bent.value - ndtr(bent.x / SIGMA))) > 0.01
+
+
 def test_an_error_of_the_lattice_offset_blurs_the_pooled_function() -> None:
     """The halves of an edge on either side of the corner have opposite polarity, so an
     error of ``c`` moves their profiles' signed distances in opposite directions: it
