@@ -493,6 +493,72 @@ def _tail_normalise(
     return z, np.where(enough, c, np.nan)
 
 
+def _sloped_tail_normalise(
+    prof: EdgeProfiles, x_flat: float, *, iterations: int = 3
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(z, C)`` of flat-fielded profiles whose tails may still fall off (no drift).
+
+    Least squares of ``y = B_p + C_p·T(x)`` over the samples with ``|x| ≥ x_flat``,
+    where ``T`` is 1 plus a parabola in ``x - r`` on the light tail and a parabola in
+    ``x + r`` on the dark one (``r = x_flat + 1``): the levels are read at ``±r``
+    whatever the profile's sampling phase, and the tails' shape (four coefficients) is
+    the frame's, shared by every profile. A diffraction-limited edge's tails still fall
+    off as 1/x there (5-9 % short of the levels 4-6 px out at f/15.6 in green light);
+    read as if flat, each profile's levels depend on where its samples fall, which
+    leaves a ripple of one pixel's period in the pooled function. For a given shape the
+    levels are closed-form per profile (projected out); the shape's coefficients take
+    Gauss–Newton steps on what is left. The samples keep that shape (``z`` is not
+    flattened in the tails). ``C`` is NaN for a profile with fewer than 2 tail samples
+    on either side.
+    """
+    x, y = prof.x, prof.y
+    light = x >= x_flat
+    dark = x <= -x_flat
+    tail = (light | dark).astype(np.float64)
+    ref = x_flat + 1.0
+    levers = (
+        np.where(light, x - ref, 0.0),
+        np.where(dark, x + ref, 0.0),
+        np.where(light, (x - ref) ** 2, 0.0),
+        np.where(dark, (x + ref) ** 2, 0.0),
+    )
+    n_terms = len(levers)
+    slopes = np.zeros(n_terms)
+    b = c = np.zeros(prof.count)
+    for k in range(iterations + 1):
+        shape = light + sum(slopes[i] * levers[i] for i in range(n_terms))
+        col_b, col_c = tail, shape
+        aa, ab, bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
+        det = aa * bb - ab * ab
+        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
+        yb, yc = _dot(y, col_b), _dot(y, col_c)
+        b = (bb * yb - ab * yc) / det
+        c = (aa * yc - ab * yb) / det
+        if k == iterations:
+            break
+        resid = (y - b[:, None] - c[:, None] * shape) * tail
+        jac = []
+        for lever in levers:
+            g = c[:, None] * lever
+            gb, gc = _dot(g, col_b), _dot(g, col_c)
+            pb = (bb * gb - ab * gc) / det
+            pc = (aa * gc - ab * gb) / det
+            jac.append(g - pb[:, None] * col_b - pc[:, None] * col_c)
+        ok = np.isfinite(det)
+        normal = np.array(
+            [[np.sum(_dot(jac[i], jac[j])[ok]) for j in range(n_terms)] for i in range(n_terms)]
+        )
+        rhs = np.array([np.sum(_dot(jac[i], resid)[ok]) for i in range(n_terms)])
+        if not (np.all(np.isfinite(normal)) and np.all(np.isfinite(rhs))):
+            break
+        # least norm: profiles at one sampling phase leave the shape partly free (any
+        # choice then maps every profile alike)
+        slopes = slopes + np.linalg.lstsq(normal, rhs, rcond=1e-10)[0]
+    z = (y - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
+    enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)
+    return z, np.where(enough, c, np.nan)
+
+
 def _dot(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
     """Row-wise dot products."""
     return np.einsum("pk,pk->p", u, v)
@@ -562,7 +628,10 @@ def frame_esf(
     if prof.count < MIN_PROFILES:
         return None
     x_flat = min(flat_distance(start_width_px), max_flat_px)
-    z, c = _tail_normalise(prof, x_flat, drift=drift)
+    if drift:
+        z, c = _tail_normalise(prof, x_flat)
+    else:
+        z, c = _sloped_tail_normalise(prof, x_flat)
     good = np.isfinite(c) & (c > 0) & np.all(np.isfinite(z), axis=1)
     if good.sum() < MIN_PROFILES:
         return None

@@ -94,8 +94,10 @@ def test_long_tails_of_flat_fielded_profiles_are_not_taken_for_a_drift() -> None
     and divided out: the bright side came out bent by 3 % of the contrast (as measured on
     a Monte-Carlo sweep with that diffraction against its exact functions) and ``Q0``
     0.3 % low on exact functions (``tests/test_defocus.py``). Flat-fielded profiles read
-    their levels without a drift: the pooled function is then the true one up to the
-    level and gain (which the defocus model fits per frame)."""
+    their levels at fixed points of tails whose shape the frame's profiles share: the
+    pooled function is the true one up to the level and gain (which the defocus model
+    fits per frame) to 1e-3 (read as flat, each profile's levels depended on its
+    sampling phase: a ripple of 2.4e-3)."""
     rng = np.random.default_rng(6)
     x = np.arange(-6, 7)[None, :] + rng.uniform(-0.5, 0.5, (400, 1))
     y = 30.0 + 500.0 * sinc2_cdf(x / 3.43)
@@ -108,5 +110,5 @@ def test_long_tails_of_flat_fielded_profiles_are_not_taken_for_a_drift() -> None
         coef = np.linalg.lstsq(design, esf.value, rcond=None)[0]
         return float(np.max(np.abs(esf.value - design @ coef)))
 
-    assert affine_misfit(frame_esf(prof, start_width_px=1.2, max_flat_px=4.0, drift=False)) < 0.003
+    assert affine_misfit(frame_esf(prof, start_width_px=1.2, max_flat_px=4.0, drift=False)) < 0.001
     assert affine_misfit(frame_esf(prof, start_width_px=1.2, max_flat_px=4.0)) > 0.015
