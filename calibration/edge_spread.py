@@ -12,10 +12,12 @@ relative drift of both levels across the edge in block ``k`` (vignetting and
 cos⁴ make the brightness change across a micro-image, and the change
 multiplies dark and light alike); ``x_flat``: beyond the blur
 (:func:`flat_distance`). Profiles flat-fielded by the white image
-(:mod:`calibration.edge_profiles`) have no drift left and are read with
-``γ = 0``: a fitted drift takes the still-falling tails of a diffraction-limited
-edge (1/x, 5-9 % short of the levels 4-6 px out) for vignetting and bends the
-function by dividing them out. The samples nearer the edge are then
+(:mod:`calibration.edge_profiles`) have no drift left and are read without it,
+their levels at fixed points of tails whose shape the frame's profiles share
+(:func:`_sloped_tail_normalise`): a fitted drift takes the still-falling tails of a
+diffraction-limited edge (1/x, 5-9 % short of the levels 4-6 px out) for
+vignetting and bends the function by dividing them out, and flat tails make each
+profile's levels depend on its sampling phase. The samples nearer the edge are then
 ``E(x) = (y/(1 + γ_k·x) - B_p)/C_p`` with no shape imposed: a template fitted
 to the whole profile would pull each profile's levels toward the template
 wherever the two differ near the edge, a bias that depends on the sampling
