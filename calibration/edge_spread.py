@@ -623,7 +623,10 @@ def frame_esf(
     ``jitter_px``: the RMS error of the edge positions the profiles are placed
     against, recorded with the function, and ``jitter_fixed_scale_px`` that
     error without the lattice scale's part; when the profiles carry levers the
-    same samples are also binned by lever (:class:`LeverGroup`). Profiles whose
+    same samples are also binned by lever (:class:`LeverGroup`). ``drift``: the
+    profiles are not flat-fielded: their levels are read with a drift per block and
+    flat tails (:func:`_tail_normalise`); false: without a drift, at fixed points of
+    the tails' shared shape (:func:`_sloped_tail_normalise`). Profiles whose
     scatter about the pooled function is far above the others' (a defect, a
     stray edge) are dropped.
     """
