@@ -472,19 +472,11 @@ def _tail_normalise(
     b = c = np.zeros(prof.count)
     for _ in range(iterations if drift else 1):
         one = 1.0 + gamma[block][:, None] * x
-        col_b, col_c = one * tail, one * step  # (the light tail is inside the tails)
-        aa, ab, bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
-        det = aa * bb - ab * ab
-        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
-        yb, yc = _dot(y, col_b), _dot(y, col_c)
-        b = (bb * yb - ab * yc) / det
-        c = (aa * yc - ab * yb) / det
+        basis = _LevelBasis(one * tail, one * step)  # (the light tail is inside the tails)
+        b, c = basis.solve(y)
         resid = (y - b[:, None] * one - c[:, None] * one * step) * tail
         g = x * (b[:, None] + c[:, None] * step) * tail  # d model / d gamma
-        gb, gc = _dot(g, col_b), _dot(g, col_c)
-        pb = (bb * gb - ab * gc) / det
-        pc = (aa * gc - ab * gb) / det
-        g_perp = g - pb[:, None] * col_b - pc[:, None] * col_c
+        g_perp = basis.residual_of(g)
         num = np.bincount(block, np.nan_to_num(_dot(g_perp, resid)), n_blocks)
         den = np.bincount(block, np.nan_to_num(_dot(g_perp, g_perp)), n_blocks)
         if drift:
@@ -529,24 +521,13 @@ def _sloped_tail_normalise(
     b = c = np.zeros(prof.count)
     for k in range(iterations + 1):
         shape = light + sum(slopes[i] * levers[i] for i in range(n_terms))
-        col_b, col_c = tail, shape
-        aa, ab, bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
-        det = aa * bb - ab * ab
-        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
-        yb, yc = _dot(y, col_b), _dot(y, col_c)
-        b = (bb * yb - ab * yc) / det
-        c = (aa * yc - ab * yb) / det
+        basis = _LevelBasis(tail, shape)
+        b, c = basis.solve(y)
         if k == iterations:
             break
         resid = (y - b[:, None] - c[:, None] * shape) * tail
-        jac = []
-        for lever in levers:
-            g = c[:, None] * lever
-            gb, gc = _dot(g, col_b), _dot(g, col_c)
-            pb = (bb * gb - ab * gc) / det
-            pc = (aa * gc - ab * gb) / det
-            jac.append(g - pb[:, None] * col_b - pc[:, None] * col_c)
-        ok = np.isfinite(det)
+        jac = [basis.residual_of(c[:, None] * lever) for lever in levers]
+        ok = np.isfinite(basis.det)
         normal = np.array(
             [[np.sum(_dot(jac[i], jac[j])[ok]) for j in range(n_terms)] for i in range(n_terms)]
         )
@@ -559,6 +540,32 @@ def _sloped_tail_normalise(
     z = (y - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
     enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)
     return z, np.where(enough, c, np.nan)
+
+
+class _LevelBasis:
+    """Per profile, the least squares onto two columns (the dark level's and the
+    contrast's, over the tail samples): coefficients of a data array, and what of a
+    derivative is left once the levels are projected out (variable projection)."""
+
+    def __init__(self, col_b: NDArray[np.float64], col_c: NDArray[np.float64]) -> None:
+        self.col_b, self.col_c = col_b, col_c
+        self.aa, self.ab, self.bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
+        det = self.aa * self.bb - self.ab * self.ab
+        floor = 1e-12 * np.maximum(self.aa * self.bb, 1e-300)
+        self.det = np.where(np.abs(det) > floor, det, np.nan)
+
+    def solve(self, v: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Per profile, the coefficients of the two columns fitted to ``v``."""
+        vb, vc = _dot(v, self.col_b), _dot(v, self.col_c)
+        return (
+            (self.bb * vb - self.ab * vc) / self.det,
+            (self.aa * vc - self.ab * vb) / self.det,
+        )
+
+    def residual_of(self, g: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``g`` less its per-profile projection onto the two columns."""
+        pb, pc = self.solve(g)
+        return g - pb[:, None] * self.col_b - pc[:, None] * self.col_c
 
 
 def _dot(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
