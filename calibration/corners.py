@@ -66,9 +66,9 @@ class CornerOptions:
     :class:`calibration.shading.WhiteShading`): edge profiles are flat-fielded by
     ``exp(-(c/2)·r²)`` about their micro-image's centre before their levels are read."""
     white_background: float = 0.0
+    """The white image's dark level (counts), the offset the flat-field leaves alone."""
     white_tilt_curvature_px2: float = 0.0
     """The angular shading's curvature (px⁻²) that tilts off-axis micro-images' shading."""
-    """The white image's dark level (counts), the offset the flat-field leaves alone."""
 
 
 @dataclass

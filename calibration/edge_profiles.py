@@ -82,6 +82,11 @@ class ProfileWindow:
     background: float = 0.0
     tilt_curvature_px2: float = 0.0
 
+    @property
+    def flat_fielded(self) -> bool:
+        """Whether the samples are divided by the white image's shading (a shading given)."""
+        return bool(self.curvature_px2 or self.tilt_curvature_px2)
+
 
 @dataclass(frozen=True)
 class PlacedProfiles:
@@ -127,8 +132,9 @@ def half_edge_profiles(
     sigma[3, 3], sigma[4, 4] = lattice.half_var_px2
     parts = []
     gradients = []
+    # the white image's shading gradient at each micro-image centre (the flat field's tilt)
+    tilt = (-window.tilt_curvature_px2 * (cx - mx), -window.tilt_curvature_px2 * (cy - my))
     for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
-        tilt = (-window.tilt_curvature_px2 * (cx - mx), -window.tilt_curvature_px2 * (cy - my))
         if axis == 0:
             cut = _cut(
                 image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False, tilt
@@ -259,7 +265,7 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
-    if window.curvature_px2 or window.tilt_curvature_px2:
+    if window.flat_fielded:
         # flat field: the white image's smooth shading about the micro-image centre
         da = across_idx - centre_across[lens][:, None]
         db = dy[lens, line][:, None]

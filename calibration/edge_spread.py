@@ -447,11 +447,7 @@ def profile_half_px(width_px: float, *, minimum: int, maximum: int) -> int:
 
 
 def _tail_normalise(
-    prof: EdgeProfiles,
-    x_flat: float,
-    *,
-    iterations: int = 4,
-    drift: bool = True,
+    prof: EdgeProfiles, x_flat: float, *, iterations: int = 4
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(z, C)``: samples mapped to the unit step by levels read off the flat tails.
 
@@ -459,8 +455,7 @@ def _tail_normalise(
     ``|x| ≥ x_flat``: for given drifts ``γ_k`` the levels of each profile are a
     2×2 linear problem, solved in closed form and projected out (variable
     projection), and each block's ``γ_k`` takes Gauss–Newton steps on what is
-    left (``drift`` false: no drift, profiles already flat-fielded). ``C`` is NaN
-    for a profile with fewer than 2 tail samples on either side.
+    left. ``C`` is NaN for a profile with fewer than 2 tail samples on either side.
     """
     x, y, block = prof.x, prof.y, prof.block
     n_blocks = int(block.max()) + 1
@@ -470,7 +465,7 @@ def _tail_normalise(
     step = light.astype(np.float64)
     gamma = np.zeros(n_blocks)
     b = c = np.zeros(prof.count)
-    for _ in range(iterations if drift else 1):
+    for _ in range(iterations):
         one = 1.0 + gamma[block][:, None] * x
         basis = _LevelBasis(one * tail, one * step)  # (the light tail is inside the tails)
         b, c = basis.solve(y)
@@ -479,8 +474,7 @@ def _tail_normalise(
         g_perp = basis.residual_of(g)
         num = np.bincount(block, np.nan_to_num(_dot(g_perp, resid)), n_blocks)
         den = np.bincount(block, np.nan_to_num(_dot(g_perp, g_perp)), n_blocks)
-        if drift:
-            gamma = gamma + np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+        gamma = gamma + np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
     one = 1.0 + gamma[block][:, None] * x
     z = (y / one - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
     enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)

@@ -405,5 +405,5 @@ def _edge_spread(
         jitter_px=placed.jitter_px,
         jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
         max_flat_px=half_px - TAIL_SAMPLES,
-        drift=not (opts.white_curvature_px2 or opts.white_tilt_curvature_px2),
+        drift=not window.flat_fielded,
     )
