@@ -35,8 +35,11 @@ def render_indsim(out: Path, *, frames: int, step_mm: float, seed: int) -> Path:
     return out
 
 
-def render_mcsim(out: Path, *, frames: int, step_mm: float, seed: int) -> Path:
-    cmd = [sys.executable, "-m", "bench.mcsim", str(out), "--preset", "small"]
+def render_mcsim(
+    out: Path, *, frames: int, step_mm: float, seed: int, extra: tuple[str, ...] = ()
+) -> Path:
+    """A sweep of ``bench/mcsim``'s small camera; ``extra`` options go to its command line."""
+    cmd = [sys.executable, "-m", "bench.mcsim", str(out), "--preset", "small", *extra]
     cmd += ["--frames", str(frames), "--step-mm", str(step_mm), "--seed", str(seed), "--jobs", "1"]
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL, timeout=900)
     return out

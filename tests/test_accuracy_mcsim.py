@@ -9,8 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from renderer_sweeps import calibrate, check_accuracy, render_mcsim
+
+from calibration.combine import KAPPA_PLAUSIBLE_MIN
 
 
 @pytest.fixture(scope="module")
@@ -23,3 +26,21 @@ def test_the_ray_traced_sweep_is_calibrated_within_twice_the_targets(sweep: Path
     check_accuracy(result, truth)
     assert result["corners_found"]["reference_frames"] > 25
     assert all(p["determined_by"] == "sweep" for k, p in result["priors"].items() if k != "L_mm")
+
+
+def test_round_microlenses_are_calibrated_and_not_flagged(tmp_path: Path) -> None:
+    """Round lenses filling their cells (most real MLAs): the defocus kernel's RMS width is
+    √12/4 of a box of the pitch, the fit must find it, and no aperture warning may fire."""
+    sweep = render_mcsim(
+        tmp_path / "round",
+        frames=31,
+        step_mm=2,
+        seed=11,
+        extra=("--aperture", "circle", "--start-mm", "20"),
+    )
+    result, truth = calibrate(sweep)
+    check_accuracy(result, truth)
+    kappa = result["focus"]["defocus_model"]["aperture_scale"]
+    assert kappa == pytest.approx(np.sqrt(12) / 4, rel=0.04)
+    assert kappa > KAPPA_PLAUSIBLE_MIN
+    assert not [w for w in result["warnings"] if "microlens aperture" in w], result["warnings"]

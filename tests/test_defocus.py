@@ -17,6 +17,7 @@ import pytest
 from edge_shapes import sinc2_cdf
 from scipy.special import ndtr
 
+from calibration.combine import aperture_scale_warning
 from calibration.defocus import DefocusNotDetermined, EdgeObservation, fit_defocus
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 
@@ -92,12 +93,21 @@ def test_q0_is_found_whatever_the_aperture_and_static_blur(shape: dict) -> None:
     # the aperture's RMS width is that of a box of the full diameter (round: √12/4)
     expected = 1.0 if shape["aperture"] == "square" else np.sqrt(12) / 4
     assert fit.kappa == pytest.approx(expected, rel=0.08)
+    assert aperture_scale_warning(fit.kappa) is None  # a plausible lens is not flagged
 
 
 def test_an_aperture_smaller_than_the_pitch_does_not_bias_the_focus() -> None:
     fit = fit_defocus(_sweep(2, scale=0.8), lens_pitch_px=LENS_PITCH_PX)
     assert fit.kappa == pytest.approx(0.8, rel=0.08)
     assert abs(fit.Q0 - Q0) <= 3 * fit.Q0_se
+
+
+def test_a_small_fill_factor_is_found_and_reported() -> None:
+    fit = fit_defocus(_sweep(3, scale=0.6), lens_pitch_px=LENS_PITCH_PX)
+    assert fit.kappa == pytest.approx(0.6, rel=0.08)
+    assert abs(fit.Q0 - Q0) <= 3 * fit.Q0_se
+    note = aperture_scale_warning(fit.kappa)
+    assert note is not None and "fill factor" in note
 
 
 def test_focus_plane_eight_millimetres_from_the_end_of_the_sweep() -> None:

@@ -12,7 +12,8 @@ Three renderers write ``lfcal-sweep/1`` archives with a ``truth.json``:
 On each renderer three accuracy sweeps cover, together, what issue 10 asks
 for: a focus plane between rail steps, a sweep that starts or ends about 8 mm
 from the focus plane, a 2 mm step, a standard-corner-only window (F and the
-rail zero must then fall back to the data sheet) and high noise. mcsim adds two
+rail zero must then fall back to the data sheet) and high noise. mcsim adds a
+sweep of round microlenses (the usual MLA; the other sweeps' are square) and two
 sweeps with the microlenses' diffraction at 550 nm (its sinc² pattern is wider than
 the defocus over most of a sweep, as in a real camera at f/12 and beyond; about 20 min
 of rendering on 2 cores). Each
@@ -192,6 +193,14 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
             _args("--preset small --step-mm 2 --frames 50 --airy-wavelength-um 0.55"),
             25,
             "50 px lenses at f/15.6 with diffraction at 550 nm (first zero 3.4 px), 2 mm steps",
+        ),
+        SweepConfig(
+            "mcsim",
+            "small-round",
+            _args("--preset small --step-mm 2 --frames 50 --aperture circle"),
+            26,
+            "50 px round microlenses (a disc of diameter D in each square cell: the defocus "
+            "kernel's RMS width is 0.87 of the square's), 2 mm steps",
         ),
         SweepConfig(
             "mcsim",
