@@ -322,21 +322,27 @@ class DefocusProblem:
         n_params = 3 + self.grid.size + 2 * rows.size
         dof = max(1, int(np.count_nonzero(self.w[rows])) - n_params)
         chi2 = float(np.sum(fit.fun**2) / dof)
-        jac = fit.jac
+        # a shape or scale parameter held at its bound (a round aperture's α = 0, a full
+        # square's κ = 1) is fixed there: its Jacobian column is not a derivative (zero on
+        # the bound) and it takes no part in the covariance; Q0 always does
+        free = np.asarray(fit.active_mask) == 0
+        free[0] = True
+        jac = fit.jac[:, free]
         try:
-            bread = np.linalg.inv(jac.T @ jac)
+            bread_free = np.linalg.inv(jac.T @ jac)
         except np.linalg.LinAlgError:
             inf = np.full((3, 3), np.inf)
             return fit.x, inf, inf, chi2
-        cov = bread * max(chi2, 1.0)
         # sandwich: the residuals of one frame share its normalisation and noise
         n_bins = self.w.shape[1]
-        score = (jac * fit.fun[:, None]).reshape(rows.size, n_bins, 3).sum(axis=1)
+        score = (jac * fit.fun[:, None]).reshape(rows.size, n_bins, jac.shape[1]).sum(axis=1)
         frames = self.frame[rows]
         clusters = np.unique(frames)
-        per = np.zeros((clusters.size, 3))
+        per = np.zeros((clusters.size, jac.shape[1]))
         np.add.at(per, np.searchsorted(clusters, frames), score)
         g = clusters.size
         meat = per.T @ per * (g / max(g - 1, 1))
-        robust = bread @ meat @ bread
-        return fit.x, cov, robust, chi2
+        bread, robust = np.zeros((3, 3)), np.zeros((3, 3))
+        bread[np.ix_(free, free)] = bread_free
+        robust[np.ix_(free, free)] = bread_free @ meat @ bread_free
+        return fit.x, bread * max(chi2, 1.0), robust, chi2

@@ -217,3 +217,17 @@ def test_diffraction_limited_profiles_through_the_levels_give_q0() -> None:
     fit = fit_defocus(obs, lens_pitch_px=50.0)
     assert fit.Q0 == pytest.approx(q0, rel=1e-3)
     assert fit.kappa == pytest.approx(1.0, abs=0.02)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_shape_held_at_its_bound_keeps_a_finite_uncertainty(seed: int) -> None:
+    """Round lenses fit the aperture's shape ``α`` at its bound 0, where the Jacobian's
+    column of ``α`` is zero: the parameter is held there and left out of the covariance.
+    (It made ``Q0``'s uncertainty infinite on a ray-traced round-lens sweep with a wrong
+    data sheet, whose focal length then fell back to the data sheet and whose focus plane
+    came out 46 mm off.)"""
+    obs = _sweep(seed, aperture="round", static="gauss", sigma_px=0.7)
+    fit = fit_defocus(obs, lens_pitch_px=LENS_PITCH_PX, start=(Q0, 0.866, 0.0))
+    assert fit.shape_box < 1e-6  # held on the bound
+    assert np.isfinite(fit.Q0_se_curvature) and 0 < fit.Q0_se_curvature < 2e-4
+    assert abs(fit.Q0 - Q0) <= 3 * fit.Q0_se
