@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .edge_fit import EdgeFits, fit_edges
+from .flat_field import FlatField
 from .lens_grid import LensGrid
 
 
@@ -61,14 +62,9 @@ class CornerOptions:
     max_block_offset_px: float = 3.0
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
-    white_curvature_px2: float = 0.0
-    """Curvature ``c`` of the white image's ``-log W`` inside the micro-images (px⁻²,
-    :class:`calibration.shading.WhiteShading`): edge profiles are flat-fielded by
-    ``exp(-(c/2)·r²)`` about their micro-image's centre before their levels are read."""
-    white_background: float = 0.0
-    """The white image's dark level (counts), the offset the flat-field leaves alone."""
-    white_tilt_curvature_px2: float = 0.0
-    """The angular shading's curvature (px⁻²) that tilts off-axis micro-images' shading."""
+    flat_field: FlatField = FlatField()
+    """The white image's smooth shading about each micro-image centre: edge profiles are
+    divided by it before their levels are read (:mod:`calibration.flat_field`)."""
 
 
 @dataclass

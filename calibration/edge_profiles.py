@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .edge_spread import EdgeProfiles
+from .flat_field import FlatField
 from .lens_grid import LensGrid
 
 
@@ -67,25 +68,20 @@ class ProfileWindow:
     """Where profiles may be cut (pixels): ``plateau_px`` the radius of each
     micro-image's fully lit interior, ``clearance_px`` the least distance from
     the corner along the edge, ``reach_px`` the largest, ``half_px`` the
-    profile's half length (``2·half_px + 1`` samples); ``curvature_px2`` the white
-    image's curvature ``c`` of ``-log W`` inside the micro-images and ``background`` its
-    dark level (counts), ``tilt_curvature_px2`` the angular shading's curvature that tilts
-    the micro-images off the axis: every sample above that level is divided by the white
-    image's smooth shading ``exp(-c_t·(c_i - m_i)·(s - c_i) - (c/2)·|s - c_i|²)`` about its
-    micro-image's centre ``c_i`` (``m_i`` the lens centre)."""
+    profile's half length (``2·half_px + 1`` samples); ``flat_field`` the white image's
+    smooth shading every sample is divided by (:class:`~calibration.flat_field.FlatField`;
+    none by default)."""
 
     plateau_px: float
     clearance_px: float
     reach_px: float
     half_px: int = 6
-    curvature_px2: float = 0.0
-    background: float = 0.0
-    tilt_curvature_px2: float = 0.0
+    flat_field: FlatField = FlatField()
 
     @property
     def flat_fielded(self) -> bool:
         """Whether the samples are divided by the white image's shading (a shading given)."""
-        return bool(self.curvature_px2 or self.tilt_curvature_px2)
+        return self.flat_field.active
 
 
 @dataclass(frozen=True)
@@ -133,7 +129,7 @@ def half_edge_profiles(
     parts = []
     gradients = []
     # the white image's shading gradient at each micro-image centre (the flat field's tilt)
-    tilt = (-window.tilt_curvature_px2 * (cx - mx), -window.tilt_curvature_px2 * (cy - my))
+    tilt = window.flat_field.gradients((cx, cy), (mx, my))
     for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
         if axis == 0:
             cut = _cut(
@@ -269,12 +265,8 @@ def _cut(
         # flat field: the white image's smooth shading about the micro-image centre
         da = across_idx - centre_across[lens][:, None]
         db = dy[lens, line][:, None]
-        log_w = (
-            gradient[0][lens][:, None] * da
-            + gradient[1][lens][:, None] * db
-            - 0.5 * window.curvature_px2 * (da * da + db * db)
-        )
-        values = window.background + (values - window.background) * np.exp(-log_w)
+        grad = (gradient[0][lens][:, None], gradient[1][lens][:, None])
+        values = window.flat_field.divide(values, (da, db), grad)
     lens = lens.astype(np.int64)
     # dark side negative: the sign of each half-edge from its profiles' ends
     half = after[lens, line]

@@ -393,9 +393,7 @@ def _edge_spread(
         clearance_px=opts.blur_clearance_px,
         reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
         half_px=half_px,
-        curvature_px2=opts.white_curvature_px2,
-        background=opts.white_background,
-        tilt_curvature_px2=opts.white_tilt_curvature_px2,
+        flat_field=opts.flat_field,
     )
     assert fit.lattice is not None
     placed = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)

@@ -29,6 +29,7 @@ from .camera_model import ModelError, check_priors
 from .combine import combine
 from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
+from .flat_field import FlatField
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
 from .shading import WhiteShading, measure_shading
@@ -115,9 +116,11 @@ class FrameAnalyzer:
             # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
             corner = dataclasses.replace(
                 options.corner,
-                white_curvature_px2=shading.curvature_px2,
-                white_background=float(grid.background),
-                white_tilt_curvature_px2=_tilt_or_zero(shading),
+                flat_field=FlatField(
+                    curvature_px2=shading.curvature_px2,
+                    background=float(grid.background),
+                    tilt_curvature_px2=_tilt_or_zero(shading),
+                ),
             )
             options = dataclasses.replace(options, corner=corner)
         return cls(geometry, dataclasses.replace(grid, shading=shading), options)

@@ -21,6 +21,7 @@ from calibration.edge_profiles import (
     half_edge_profiles,
 )
 from calibration.edge_spread import LEVER_GROUPS, BinnedEsf, frame_esf
+from calibration.flat_field import FlatField
 from calibration.lens_grid import LensGrid
 
 PITCH, Q, SIGMA, RADIUS = 40.0, 0.25, 0.7, 14.0
@@ -104,9 +105,7 @@ def test_profiles_are_flat_fielded_by_the_white_images_shading() -> None:
         clearance_px=3.0,
         reach_px=400.0,
         half_px=6,
-        curvature_px2=curvature,
-        background=gap,
-        tilt_curvature_px2=tilt,
+        flat_field=FlatField(curvature_px2=curvature, background=gap, tilt_curvature_px2=tilt),
     )
     flat = frame_esf(
         half_edge_profiles(shaded, lattice, lens, image, window).profiles,
