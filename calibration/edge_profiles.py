@@ -78,11 +78,6 @@ class ProfileWindow:
     half_px: int = 6
     flat_field: FlatField = FlatField()
 
-    @property
-    def flat_fielded(self) -> bool:
-        """Whether the samples are divided by the white image's shading (a shading given)."""
-        return self.flat_field.active
-
 
 @dataclass(frozen=True)
 class PlacedProfiles:
@@ -261,7 +256,7 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
-    if window.flat_fielded:
+    if window.flat_field.active:
         # flat field: the white image's smooth shading about the micro-image centre
         da = across_idx - centre_across[lens][:, None]
         db = dy[lens, line][:, None]

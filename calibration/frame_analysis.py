@@ -403,5 +403,5 @@ def _edge_spread(
         jitter_px=placed.jitter_px,
         jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
         max_flat_px=half_px - TAIL_SAMPLES,
-        drift=not window.flat_fielded,
+        drift=not window.flat_field.active,
     )

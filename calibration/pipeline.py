@@ -29,10 +29,9 @@ from .camera_model import ModelError, check_priors
 from .combine import combine
 from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
-from .flat_field import FlatField
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
-from .shading import WhiteShading, measure_shading
+from .shading import measure_shading
 from .summary import (
     CalibrationError,
     CalibrationOptions,
@@ -112,16 +111,10 @@ class FrameAnalyzer:
                 options.corner, blur_radius_fraction=shading.plateau_fraction
             )
             options = dataclasses.replace(options, corner=corner)
-        if np.isfinite(shading.curvature_px2):
+        flat_field = shading.flat_field(grid.background)
+        if flat_field is not None:
             # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
-            corner = dataclasses.replace(
-                options.corner,
-                flat_field=FlatField(
-                    curvature_px2=shading.curvature_px2,
-                    background=float(grid.background),
-                    tilt_curvature_px2=_tilt_or_zero(shading),
-                ),
-            )
+            corner = dataclasses.replace(options.corner, flat_field=flat_field)
             options = dataclasses.replace(options, corner=corner)
         return cls(geometry, dataclasses.replace(grid, shading=shading), options)
 
@@ -170,13 +163,6 @@ class FrameAnalyzer:
 
 
 _WORKER: dict[str, Any] = {}
-
-
-def _tilt_or_zero(shading: WhiteShading) -> float:
-    """The curvature that tilts the micro-images' shading across the sensor (px⁻²): the
-    measured tilt, else the angular curvature, else 0."""
-    c = shading.tilt_curvature_px2 if shading.tilt_measured else shading.angular_curvature()[0]
-    return float(c) if np.isfinite(c) else 0.0
 
 
 def _worker_init(root: str, analyzer: FrameAnalyzer) -> None:

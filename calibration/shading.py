@@ -51,6 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from .flat_field import FlatField
 from .lens_grid import LensGrid
 
 INTERIOR_FRACTION = 0.6
@@ -165,6 +166,20 @@ class WhiteShading:
         if self.tilt_measured and self.tilt_curvature_se_px2 < bounded[1]:
             return self.tilt_curvature_px2, self.tilt_curvature_se_px2
         return bounded
+
+    def flat_field(self, background: float) -> FlatField | None:
+        """The shading edge profiles are divided by (None when the curvature inside the
+        micro-images was not measured): that curvature, the white image's dark level
+        ``background`` (counts), and the tilt's curvature (the measured tilt, else the
+        angular curvature, else 0)."""
+        if not np.isfinite(self.curvature_px2):
+            return None
+        tilt = self.tilt_curvature_px2 if self.tilt_measured else self.angular_curvature()[0]
+        return FlatField(
+            curvature_px2=self.curvature_px2,
+            background=float(background),
+            tilt_curvature_px2=float(tilt) if np.isfinite(tilt) else 0.0,
+        )
 
     def bias_coefficient(self, aperture_variance_px2: float) -> float:
         """``η = Var(p)·c``: the disparity reads ``Q·(1 + η·(Q - Q0))`` (``c`` the angular
