@@ -17,7 +17,11 @@ For every micro-image that shows a board corner:
 3. **edge blocks**: rows above (A) and below (D) the corner sample the vertical
    edge, columns left (B) and right (C) the horizontal edge; each row/column
    profile is fitted with the blurred-step model of :mod:`calibration.edge_fit`
-   (on the raw counts, so the filter cannot bias the sub-pixel positions);
+   (on the raw counts, so the filter cannot bias the sub-pixel positions),
+   divided by the white image's shading about the micro-image when there is one
+   (``CornerOptions.flat_field``): a level that falls across an edge moves the
+   fitted step, and the bowl of cos⁴ and vignetting falls radially, so it pulled
+   every corner towards its micro-image's centre and read ``Q`` low;
 4. **corner**: ``x = (x̄_A + x̄_D)/2``, ``y = (ȳ_B + ȳ_C)/2`` (Eq. 6 with equal
    weight per side; a common slope per edge absorbs a small board tilt). Equal
    side weights keep the reference corner unbiased: its edges jog by ``±Cr/2``
@@ -63,8 +67,9 @@ class CornerOptions:
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
     flat_field: FlatField = FlatField()
-    """The white image's smooth shading about each micro-image centre: edge profiles are
-    divided by it before their levels are read (:mod:`calibration.flat_field`)."""
+    """The white image's smooth shading about each micro-image centre: the corners' edge
+    profiles are divided by it before they are fitted, and the edge-spread profiles before
+    their levels are read (:mod:`calibration.flat_field`)."""
 
 
 @dataclass
@@ -266,8 +271,10 @@ def _collect_blocks(
     centre: tuple[float, float],
     radius: float,
     opts: CornerOptions,
+    gradient: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[list[_Block], list[NDArray[np.float32]]]:
-    """Row/column profiles of the four edge blocks around the start point ``(x0, y0)``."""
+    """Row/column profiles of the four edge blocks around the start point ``(x0, y0)``,
+    flat-fielded about the micro-image ``centre`` with its shading ``gradient`` (per px)."""
     h = opts.profile_half_px
     blocks: list[_Block] = []
     profiles: list[NDArray[np.float32]] = []
@@ -283,7 +290,10 @@ def _collect_blocks(
         far = np.maximum((x0 - h - cx) ** 2, (x0 + h - cx) ** 2) + (ys - cy) ** 2
         ys = ys[ok & (far <= r2)]
         if ys.size:
-            profiles.append(img[ys[:, None], x0 + offsets[None, :]])
+            xs_grid, ys_grid = np.meshgrid(x0 + offsets, ys)
+            profiles.append(
+                _flat_fielded(img[ys_grid, xs_grid], xs_grid, ys_grid, centre, gradient, opts)
+            )
             blocks.append(_Block(owner, name, ys.astype(float), np.full(ys.size, x0 - h, float)))
     for name, sign, first in (("B", -1, 0), ("C", 1, 1)):
         xs = x0 + sign * np.arange(first, span + 1)
@@ -291,9 +301,32 @@ def _collect_blocks(
         far = np.maximum((y0 - h - cy) ** 2, (y0 + h - cy) ** 2) + (xs - cx) ** 2
         xs = xs[ok & (far <= r2)]
         if xs.size:
-            profiles.append(img[y0 + offsets[:, None], xs[None, :]].T)
+            ys_grid, xs_grid = np.meshgrid(y0 + offsets, xs)
+            profiles.append(
+                _flat_fielded(img[ys_grid, xs_grid], xs_grid, ys_grid, centre, gradient, opts)
+            )
             blocks.append(_Block(owner, name, xs.astype(float), np.full(xs.size, y0 - h, float)))
     return blocks, profiles
+
+
+def _flat_fielded(
+    values: NDArray[np.float32],
+    xs: NDArray[np.int64],
+    ys: NDArray[np.int64],
+    centre: tuple[float, float],
+    gradient: tuple[float, float],
+    opts: CornerOptions,
+) -> NDArray[np.float32]:
+    """``values`` (counts) at pixels ``(xs, ys)`` divided by the shading about ``centre``."""
+    if not opts.flat_field.active:
+        return values
+    offset = (
+        np.asarray(xs - centre[0], dtype=np.float64),
+        np.asarray(ys - centre[1], dtype=np.float64),
+    )
+    tilt = (np.asarray(gradient[0], dtype=np.float64), np.asarray(gradient[1], dtype=np.float64))
+    divided = opts.flat_field.divide(values.astype(np.float64), offset, tilt)
+    return divided.astype(np.float32)
 
 
 def _deficit_width(first: tuple[Any, ...], second: tuple[Any, ...], window_px: float) -> float:
@@ -354,8 +387,13 @@ def measure_corners(
     *,
     interior_radius_px: float,
     options: CornerOptions | None = None,
+    lens_grid: LensGrid | None = None,
 ) -> list[CornerMeasurement]:
     """ESIF corner measurement for each start ``(i, j, x0, y0)`` (lens index, rough position).
+
+    ``lens_grid`` (the lens centres) gives each micro-image the tilt of the shading
+    ``options.flat_field`` divides out (without it only the bowl about the micro-image
+    centre is divided).
 
     All edge profiles of all micro-images are fitted in one batch. A corner
     found more than ``restart_px`` from its start is measured again with its
@@ -364,7 +402,7 @@ def measure_corners(
     """
     opts = options or CornerOptions()
     img = np.asarray(frame, dtype=np.float32)
-    results = _measure_batch(img, starts, image_grid, interior_radius_px, opts)
+    results = _measure_batch(img, starts, image_grid, interior_radius_px, opts, lens_grid)
     again = [
         k
         for k, m in enumerate(results)
@@ -372,7 +410,7 @@ def measure_corners(
     ]
     if again:
         restarts = [(starts[k][0], starts[k][1], results[k].x, results[k].y) for k in again]
-        second = _measure_batch(img, restarts, image_grid, interior_radius_px, opts)
+        second = _measure_batch(img, restarts, image_grid, interior_radius_px, opts, lens_grid)
         for k, m in zip(again, second, strict=True):
             results[k] = m
     return results
@@ -384,6 +422,7 @@ def _measure_batch(
     image_grid: LensGrid,
     interior_radius_px: float,
     opts: CornerOptions,
+    lens_grid: LensGrid | None,
 ) -> list[CornerMeasurement]:
     height, width = img.shape
     results: list[CornerMeasurement] = []
@@ -411,7 +450,14 @@ def _measure_batch(
         if np.hypot(x0 - cxf, y0 - cyf) > interior_radius_px - 2:
             m.reason = "corner outside the micro-image interior (rim or vignetting)"
             continue
-        blocks, profiles = _collect_blocks(img, owner, x0, y0, (cxf, cyf), interior_radius_px, opts)
+        gradient = (0.0, 0.0)
+        if lens_grid is not None and opts.flat_field.active:
+            lens_x, lens_y = lens_grid.centre(i, j)
+            gx, gy = opts.flat_field.gradients((cx, cy), (lens_x, lens_y))
+            gradient = (float(gx), float(gy))
+        blocks, profiles = _collect_blocks(
+            img, owner, x0, y0, (cxf, cyf), interior_radius_px, opts, gradient
+        )
         for b, p in zip(blocks, profiles, strict=True):
             b.rows = slice(n_rows, n_rows + len(p))
             n_rows += len(p)

@@ -329,6 +329,7 @@ def analyze_frame(
         ctx.image_grid,
         interior_radius_px=ctx.interior_radius_px,
         options=ctx.options,
+        lens_grid=ctx.lens_grid,
     )
     rejected: dict[str, int] = {}
     for m in meas:

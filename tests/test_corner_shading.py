@@ -1,0 +1,114 @@
+"""Corners under the micro-images' shading (cos⁴): no radial pull towards the micro-image centre.
+
+The simulator weights every ray by cos⁴ of its angle at the sensor, so each micro-image
+is a bowl centred on its lens. A level that falls across an edge moves the fitted step:
+without the white image's flat field the corners of a 50 px-lens camera at its focus plane
+are pulled towards their micro-image's centre by about 4e-5 of their offset, which reads
+``Q`` low by a few 1e-5 (issue 10: the 50 px cameras' shared ``Q0`` bias). Ground truth:
+the corners' positions from OPTICS.md §1 (noiseless frames, at and 1 mm either side of
+the focus plane).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calibration.board import Board
+from calibration.corners import CornerOptions
+from calibration.optics import CameraOptics, main_aperture_for_matching, mla_distance_for_focus
+from calibration.pipeline import FrameAnalyzer
+from calibration.presets import get_preset
+from calibration.simulator import SimCamera, corner_images_px, image_centre_scale, render_frame
+from calibration.summary import SweepGeometry
+
+U0_MM = 220.3
+
+
+def _camera() -> SimCamera:
+    """The 50 px-lens camera of the benchmark's coverage sweeps (F 25, f 1.5, b 1.95 mm)."""
+    L = mla_distance_for_focus(U0_MM, 25.0, 1.5, 1.95)
+    optics = CameraOptics(
+        F=25.0,
+        f=1.5,
+        D=0.125,
+        delta=0.0025,
+        b=1.95,
+        L=L,
+        aperture=main_aperture_for_matching(L, 1.95, 0.125),
+    )
+    paper = get_preset("paper").camera
+    sensor = dataclasses.replace(
+        paper.sensor, width=2160, height=480, principal_point_px=(1897.5, 266.5)
+    )
+    return dataclasses.replace(paper, optics=optics, sensor=sensor)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[SimCamera, FrameAnalyzer, list[tuple[float, np.ndarray]]]:
+    cam = _camera()
+    geometry = SweepGeometry(
+        width=cam.sensor.width,
+        height=cam.sensor.height,
+        pixel_pitch_mm=cam.optics.delta,
+        principal_point_px=cam.sensor.pp,
+        main_focal_mm=cam.optics.F,
+        mla_focal_mm=cam.optics.f,
+        mla_pitch_mm=cam.optics.D,
+        board=Board(),
+        zero_object_distance_mm=U0_MM,
+        direction=1,
+    )
+    white = render_frame(cam, object_distance_mm=U0_MM, white=True, noise=False)
+    analyzer = FrameAnalyzer.from_white(geometry, white)
+    frames = [
+        (u, render_frame(cam, object_distance_mm=u, noise=False))
+        for u in (U0_MM - 1.0, U0_MM, U0_MM + 1.0)
+    ]
+    return cam, analyzer, frames
+
+
+def _radial_pull(cam: SimCamera, analyzer: FrameAnalyzer, frames) -> tuple[float, int]:
+    """Least-squares slope of the corners' error against their offset from the micro-image
+    centre (both axes, both corners): negative = pulled towards the centre."""
+    cx, cy = cam.sensor.pp
+    scale = image_centre_scale(cam.optics.L, cam.optics.b)
+    offsets, errors = [], []
+    for u, frame in frames:
+        summary = analyzer.analyze(0, u - U0_MM, frame)
+        for name, board_xy in (("standard", (0.0, 0.0)), ("reference", (20.0, 0.0))):
+            truth = corner_images_px(cam, board_xy, u)
+            tx = np.array([t["x"] for t in truth])
+            ty = np.array([t["y"] for t in truth])
+            for row in summary.corners[name]:
+                k = int(np.argmin(np.hypot(tx - row[2], ty - row[3])))
+                centre_x = cx + scale * (truth[k]["mx"] - cx)
+                centre_y = cy + scale * (truth[k]["my"] - cy)
+                offsets += [tx[k] - centre_x, ty[k] - centre_y]
+                errors += [row[2] - tx[k], row[3] - ty[k]]
+    off, err = np.array(offsets), np.array(errors)
+    design = np.column_stack([off, np.ones_like(off)])
+    slope = float(np.linalg.lstsq(design, err, rcond=None)[0][0])
+    return slope, len(off) // 2
+
+
+def test_flat_fielded_corners_are_not_pulled_towards_the_micro_image_centre(scene) -> None:
+    cam, analyzer, frames = scene
+    assert analyzer.options.corner.flat_field.active
+    pull, n = _radial_pull(cam, analyzer, frames)
+    assert n >= 20
+    assert abs(pull) < 1.5e-5, pull
+
+
+def test_without_the_flat_field_the_shading_pulls_the_corners_inwards(scene) -> None:
+    """The control: the same frames with the corners' flat field switched off."""
+    cam, analyzer, frames = scene
+    options = analyzer.options
+    bare = dataclasses.replace(
+        options, corner=dataclasses.replace(options.corner, flat_field=CornerOptions().flat_field)
+    )
+    plain = FrameAnalyzer(analyzer.geometry, analyzer.grid, bare)
+    pull, _ = _radial_pull(cam, plain, frames)
+    assert pull < -3e-5, pull
