@@ -49,6 +49,9 @@ from .edge_fit import EdgeFits, fit_edges
 from .flat_field import FlatField
 from .lens_grid import LensGrid
 
+MIN_FITTED_SAMPLES = 7
+"""Fewest samples of an edge profile its fit may use (four parameters)."""
+
 
 @dataclass(frozen=True)
 class CornerOptions:
@@ -66,6 +69,11 @@ class CornerOptions:
     max_block_offset_px: float = 3.0
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
+    profile_core_half_px: int = 2
+    """A corner's edge profile (all of it within the micro-image interior) leaves its samples
+    beyond the fully lit plateau (``blur_radius_fraction`` of the micro-image radius) out of
+    its fit when its samples within this distance of its centre, and at least
+    ``MIN_FITTED_SAMPLES`` in all, lie on the plateau."""
     flat_field: FlatField = FlatField()
     """The white image's smooth shading about each micro-image centre: the corners' edge
     profiles are divided by it before they are fitted, and the edge-spread profiles before
@@ -264,69 +272,77 @@ class _Block:
 
 
 def _collect_blocks(
-    img: NDArray[np.float32],
     owner: int,
     x0: int,
     y0: int,
     centre: tuple[float, float],
     radius: float,
+    shape: tuple[int, int],
     opts: CornerOptions,
-    gradient: tuple[float, float] = (0.0, 0.0),
-) -> tuple[list[_Block], list[NDArray[np.float32]]]:
-    """Row/column profiles of the four edge blocks around the start point ``(x0, y0)``,
-    flat-fielded about the micro-image ``centre`` with its shading ``gradient`` (per px)."""
+) -> list[_Block]:
+    """The four edge blocks around the start point ``(x0, y0)``: row profiles above (A) and
+    below (D) it across the vertical edge, column profiles left (B) and right (C) of it
+    across the horizontal edge, each profile wholly within ``radius`` of the micro-image
+    ``centre`` and in the frame (``shape``)."""
     h = opts.profile_half_px
-    blocks: list[_Block] = []
-    profiles: list[NDArray[np.float32]] = []
-    height, width = img.shape
+    height, width = shape
     cx, cy = centre
-    offsets = np.arange(-h, h + 1)
     r2 = radius * radius
     span = int(radius) + 1
+    blocks: list[_Block] = []
     for name, sign, first in (("A", -1, 0), ("D", 1, 1)):
         ys = y0 + sign * np.arange(first, span + 1)
-        # the whole profile must lie in the interior disc and in the frame
         ok = (ys >= 0) & (ys < height) & (x0 - h >= 0) & (x0 + h < width)
-        far = np.maximum((x0 - h - cx) ** 2, (x0 + h - cx) ** 2) + (ys - cy) ** 2
+        far = max((x0 - h - cx) ** 2, (x0 + h - cx) ** 2) + (ys - cy) ** 2
         ys = ys[ok & (far <= r2)]
         if ys.size:
-            xs_grid, ys_grid = np.meshgrid(x0 + offsets, ys)
-            profiles.append(
-                _flat_fielded(img[ys_grid, xs_grid], xs_grid, ys_grid, centre, gradient, opts)
-            )
             blocks.append(_Block(owner, name, ys.astype(float), np.full(ys.size, x0 - h, float)))
     for name, sign, first in (("B", -1, 0), ("C", 1, 1)):
         xs = x0 + sign * np.arange(first, span + 1)
         ok = (xs >= 0) & (xs < width) & (y0 - h >= 0) & (y0 + h < height)
-        far = np.maximum((y0 - h - cy) ** 2, (y0 + h - cy) ** 2) + (xs - cx) ** 2
+        far = max((y0 - h - cy) ** 2, (y0 + h - cy) ** 2) + (xs - cx) ** 2
         xs = xs[ok & (far <= r2)]
         if xs.size:
-            ys_grid, xs_grid = np.meshgrid(y0 + offsets, xs)
-            profiles.append(
-                _flat_fielded(img[ys_grid, xs_grid], xs_grid, ys_grid, centre, gradient, opts)
-            )
             blocks.append(_Block(owner, name, xs.astype(float), np.full(xs.size, y0 - h, float)))
-    return blocks, profiles
+    return blocks
 
 
-def _flat_fielded(
-    values: NDArray[np.float32],
-    xs: NDArray[np.int64],
-    ys: NDArray[np.int64],
-    centre: tuple[float, float],
-    gradient: tuple[float, float],
+def _profiles(
+    img: NDArray[np.float32],
+    blocks: list[_Block],
+    centres: NDArray[np.float64],
+    gradients: NDArray[np.float64],
+    plateau_px: float,
     opts: CornerOptions,
-) -> NDArray[np.float32]:
-    """``values`` (counts) at pixels ``(xs, ys)`` divided by the shading about ``centre``."""
-    if not opts.flat_field.active:
-        return values
-    offset = (
-        np.asarray(xs - centre[0], dtype=np.float64),
-        np.asarray(ys - centre[1], dtype=np.float64),
-    )
-    tilt = (np.asarray(gradient[0], dtype=np.float64), np.asarray(gradient[1], dtype=np.float64))
-    divided = opts.flat_field.divide(values.astype(np.float64), offset, tilt)
-    return divided.astype(np.float32)
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Every block's profiles (one row each, in block order), divided by the flat field
+    about their micro-image's centre with its shading gradient (``centres``, ``gradients``:
+    one row per block, px and per px), and which samples their fits use: those on the fully
+    lit plateau (within ``plateau_px`` of the centre), unless fewer than
+    ``MIN_FITTED_SAMPLES`` or the central ``2·core + 1``
+    (``CornerOptions.profile_core_half_px``) are, when the whole profile is fitted."""
+    h = opts.profile_half_px
+    offsets = np.arange(-h, h + 1, dtype=np.float64)
+    counts = np.array([b.along.size for b in blocks])
+    vertical = np.repeat([b.name in "AD" for b in blocks], counts)[:, None]
+    along = np.concatenate([b.along for b in blocks])[:, None]
+    across = np.concatenate([b.start for b in blocks])[:, None] + h + offsets[None, :]
+    xs = np.where(vertical, across, along)
+    ys = np.where(vertical, along, across)
+    values = img[ys.astype(np.intp), xs.astype(np.intp)].astype(np.float64)
+    dx = xs - np.repeat(centres[:, 0], counts)[:, None]
+    dy = ys - np.repeat(centres[:, 1], counts)[:, None]
+    valid = dx * dx + dy * dy <= plateau_px * plateau_px
+    core = np.abs(offsets) <= min(opts.profile_core_half_px, h)
+    short = ~valid[:, core].all(axis=1) | (valid.sum(axis=1) < MIN_FITTED_SAMPLES)
+    valid[short] = True
+    if opts.flat_field.active:
+        tilt = (
+            np.repeat(gradients[:, 0], counts)[:, None],
+            np.repeat(gradients[:, 1], counts)[:, None],
+        )
+        values = opts.flat_field.divide(values, (dx, dy), tilt)
+    return values, valid
 
 
 def _deficit_width(first: tuple[Any, ...], second: tuple[Any, ...], window_px: float) -> float:
@@ -427,7 +443,11 @@ def _measure_batch(
     height, width = img.shape
     results: list[CornerMeasurement] = []
     all_blocks: list[_Block] = []
-    all_profiles: list[NDArray[np.float32]] = []
+    block_centres: list[tuple[float, float]] = []
+    block_gradients: list[tuple[float, float]] = []
+    # samples beyond the fully lit plateau (the rim, which the flat field does not model)
+    # are left out of the fits
+    plateau_px = opts.blur_radius_fraction * 0.5 * image_grid.pitch_px
     hp = opts.profile_half_px
     win = int(round(interior_radius_px))
     n_rows = 0
@@ -455,18 +475,23 @@ def _measure_batch(
             lens_x, lens_y = lens_grid.centre(i, j)
             gx, gy = opts.flat_field.gradients((cx, cy), (lens_x, lens_y))
             gradient = (float(gx), float(gy))
-        blocks, profiles = _collect_blocks(
-            img, owner, x0, y0, (cxf, cyf), interior_radius_px, opts, gradient
-        )
-        for b, p in zip(blocks, profiles, strict=True):
-            b.rows = slice(n_rows, n_rows + len(p))
-            n_rows += len(p)
+        for b in _collect_blocks(owner, x0, y0, (cxf, cyf), interior_radius_px, img.shape, opts):
+            b.rows = slice(n_rows, n_rows + b.along.size)
+            n_rows += b.along.size
             all_blocks.append(b)
-            all_profiles.append(p)
-    if not all_profiles:
+            block_centres.append((cxf, cyf))
+            block_gradients.append(gradient)
+    if not all_blocks:
         return results
-    stacked = np.concatenate(all_profiles, axis=0)
-    fits = fit_edges(stacked)
+    stacked, valid = _profiles(
+        img,
+        all_blocks,
+        np.array(block_centres, dtype=np.float64),
+        np.array(block_gradients, dtype=np.float64),
+        plateau_px,
+        opts,
+    )
+    fits = fit_edges(stacked, valid=valid)
     by_owner: dict[int, dict[str, _Block]] = {}
     for b in all_blocks:
         by_owner.setdefault(b.owner, {})[b.name] = b

@@ -60,23 +60,47 @@ def _model(t: NDArray[np.float64], p: NDArray[np.float64]) -> tuple[NDArray[np.f
     return value, jac
 
 
+def _filled(y: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """``y`` with every invalid sample replaced by the nearest valid one of its row (for the
+    initial guesses only: the fit gives invalid samples no weight)."""
+    k = y.shape[1]
+    idx = np.where(valid, np.arange(k)[None, :], -1)
+    last = np.maximum.accumulate(idx, axis=1)  # nearest valid to the left
+    idx_r = np.where(valid, np.arange(k)[None, :], k)
+    nxt = np.minimum.accumulate(idx_r[:, ::-1], axis=1)[:, ::-1]  # nearest valid to the right
+    source = np.where(last >= 0, last, np.minimum(nxt, k - 1))
+    return np.take_along_axis(y, source, axis=1)
+
+
 def fit_edges(
     profiles: NDArray[np.floating],
     *,
+    valid: NDArray[np.bool_] | None = None,
     max_iter: int = 12,
     min_width: float = 0.0,
     max_width: float = 6.0,
 ) -> EdgeFits:
     """Fit the blurred-step model to every row of ``profiles`` (shape ``(N, K)``).
 
-    ``ok`` is False when a fit did not converge, left the profile, or has a
-    width outside ``[min_width, max_width]`` pixels.
+    ``valid`` (same shape) marks the samples a fit uses (default all): a profile
+    whose ends reach into a micro-image's vignetted rim leaves them out rather
+    than fitting a step to a falling level. ``ok`` is False when a fit did not
+    converge, left the profile, or has a width outside ``[min_width, max_width]``
+    pixels.
     """
     y = np.asarray(profiles, dtype=np.float64)
     if y.ndim != 2 or y.shape[1] < 5:
         raise ValueError("profiles must be a 2-D array with at least 5 samples per profile")
     n, k = y.shape
     t = np.arange(k, dtype=np.float64)
+    weight: NDArray[np.float64] | None = None
+    if valid is not None:
+        mask = np.asarray(valid, dtype=bool)
+        if mask.shape != y.shape:
+            raise ValueError("valid must have the shape of profiles")
+        if not mask.all():
+            weight = mask.astype(np.float64)
+            y = _filled(y, mask)
     # initial guess: step from the ends, position at the steepest gradient
     ends = max(1, k // 5)
     B = y[:, :ends].mean(axis=1)
@@ -88,6 +112,9 @@ def fit_edges(
     lam = np.full(n, 1e-3)
     value, jac = _model(t, p)
     r = y - value
+    if weight is not None:
+        jac *= weight[:, :, None]
+        r *= weight
     cost = np.einsum("nk,nk->n", r, r)
     eye = np.eye(4)[None]
     active = np.arange(n)
@@ -110,6 +137,9 @@ def fit_edges(
         trial[:, 3] = np.clip(trial[:, 3], 0.02, 50.0)
         t_value, t_jac = _model(t, trial)
         t_r = y[active] - t_value
+        if weight is not None:
+            t_jac *= weight[active, :, None]
+            t_r *= weight[active]
         t_cost = np.einsum("nk,nk->n", t_r, t_r)
         better = t_cost < cost[active]
         idx = active[better]
@@ -123,8 +153,8 @@ def fit_edges(
         lam[active] = np.where(better, lam[active] * 0.3, lam[active] * 10.0)
         done = (np.abs(step[:, 2]) < 1e-5) & (np.abs(step[:, 3]) < 1e-5) | (lam[active] > 1e8)
         active = active[~done]
-    dof = max(1, k - 4)
-    sigma2 = cost / dof
+    used = np.full(n, float(k)) if weight is None else weight.sum(axis=1)
+    sigma2 = cost / np.maximum(used - 4.0, 1.0)
     jt = jac.transpose(0, 2, 1)
     jtj = jt @ jac
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # singular: inf cov
@@ -149,7 +179,7 @@ def fit_edges(
         width=width,
         background=p[:, 0],
         contrast=p[:, 1],
-        rms_residual=np.sqrt(cost / k),
+        rms_residual=np.sqrt(cost / np.maximum(used, 1.0)),
         position_se=position_se,
         ok=ok,
     )

@@ -59,3 +59,29 @@ def test_rejects_bad_shapes() -> None:
         fit_edges(np.zeros((3, 4)))
     with pytest.raises(ValueError, match="2-D"):
         fit_edges(np.zeros(13))
+
+
+def test_samples_left_out_do_not_move_the_edge() -> None:
+    """A profile whose last samples reach into a micro-image's rim (the light falls off
+    there) is fitted on the samples it keeps: the edge where it is; fitted whole, the
+    falling level moves it."""
+    rng = np.random.default_rng(2)
+    n, k = 200, 13
+    t = np.arange(k, dtype=float)
+    t0 = rng.uniform(5.5, 6.5, n)
+    w = rng.uniform(0.4, 0.8, n)
+    y = 100.0 + 2500.0 * _pixel_integrated_step(t, t0, w)
+    rim = np.clip(1.0 - 0.15 * (t - 9.0), None, 1.0)  # the last three samples fall off
+    y = 100.0 + (y - 100.0) * rim[None, :]
+    valid = np.broadcast_to(t < 10.0, y.shape)
+    kept = fit_edges(y, valid=valid)
+    whole = fit_edges(y)
+    assert kept.ok.all()
+    assert_allclose(kept.position, t0, atol=2e-3)
+    assert_allclose(kept.contrast, 2500.0, rtol=1e-3)
+    assert np.mean(np.abs(whole.position - t0)) > 0.01
+
+
+def test_valid_must_match_the_profiles() -> None:
+    with pytest.raises(ValueError, match="shape"):
+        fit_edges(np.ones((3, 13)), valid=np.ones((3, 12), dtype=bool))
