@@ -15,13 +15,18 @@ def _pixel_integrated_step(t: np.ndarray, t0: np.ndarray, w: np.ndarray, n_sub: 
     return ndtr((tt - t0[:, None, None]) / w[:, None, None]).mean(axis=2)
 
 
+def _random_steps(seed: int, n: int, t0_range: tuple[float, float], w_range: tuple[float, float]):
+    """``n`` noiseless 13-sample profiles (background 100, contrast 2500) of steps at random
+    positions and widths: ``(t, t0, w, y)``."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(13, dtype=float)
+    t0 = rng.uniform(*t0_range, n)
+    w = rng.uniform(*w_range, n)
+    return t, t0, w, 100.0 + 2500.0 * _pixel_integrated_step(t, t0, w)
+
+
 def test_positions_and_widths_recovered_without_noise() -> None:
-    rng = np.random.default_rng(0)
-    n, k = 400, 13
-    t = np.arange(k, dtype=float)
-    t0 = rng.uniform(4.5, 7.5, n)
-    w = rng.uniform(0.3, 1.5, n)
-    y = 100.0 + 2500.0 * _pixel_integrated_step(t, t0, w)
+    t, t0, w, y = _random_steps(0, 400, (4.5, 7.5), (0.3, 1.5))
     fits = fit_edges(y)
     assert fits.ok.all()
     assert_allclose(fits.position, t0, atol=2e-3)
@@ -65,12 +70,7 @@ def test_samples_left_out_do_not_move_the_edge() -> None:
     """A profile whose last samples reach into a micro-image's rim (the light falls off
     there) is fitted on the samples it keeps: the edge where it is; fitted whole, the
     falling level moves it."""
-    rng = np.random.default_rng(2)
-    n, k = 200, 13
-    t = np.arange(k, dtype=float)
-    t0 = rng.uniform(5.5, 6.5, n)
-    w = rng.uniform(0.4, 0.8, n)
-    y = 100.0 + 2500.0 * _pixel_integrated_step(t, t0, w)
+    t, t0, _, y = _random_steps(2, 200, (5.5, 6.5), (0.4, 0.8))
     rim = np.clip(1.0 - 0.15 * (t - 9.0), None, 1.0)  # the last three samples fall off
     y = 100.0 + (y - 100.0) * rim[None, :]
     valid = np.broadcast_to(t < 10.0, y.shape)
