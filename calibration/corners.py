@@ -79,6 +79,11 @@ class CornerOptions:
     profiles are divided by it before they are fitted, and the edge-spread profiles before
     their levels are read (:mod:`calibration.flat_field`)."""
 
+    def plateau_px(self, image_pitch_px: float) -> float:
+        """Radius (px) of the micro-images' fully lit plateau, ``blur_radius_fraction`` of
+        half the micro-image pitch."""
+        return self.blur_radius_fraction * 0.5 * image_pitch_px
+
 
 @dataclass
 class CornerMeasurement:
@@ -447,7 +452,7 @@ def _measure_batch(
     block_gradients: list[tuple[float, float]] = []
     # samples beyond the fully lit plateau (the rim, which the flat field does not model)
     # are left out of the fits
-    plateau_px = opts.blur_radius_fraction * 0.5 * image_grid.pitch_px
+    plateau_px = opts.plateau_px(image_grid.pitch_px)
     hp = opts.profile_half_px
     win = int(round(interior_radius_px))
     n_rows = 0

@@ -382,7 +382,7 @@ def _edge_spread(
 ) -> BinnedEsf | None:
     """The corner's edge-spread function from every micro-image that shows its half-edges."""
     opts = ctx.options
-    plateau_px = opts.blur_radius_fraction * 0.5 * ctx.image_grid.pitch_px
+    plateau_px = opts.plateau_px(ctx.image_grid.pitch_px)
     # longer profiles for blurred edges (flat tails), within what the plateau holds
     half_px = profile_half_px(
         fit.edge_width_px,

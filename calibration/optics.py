@@ -190,10 +190,18 @@ class CameraOptics:
         )
 
 
-def paper_optics() -> CameraOptics:
-    """The seed paper's Zemax camera: F=35, f=2.5, D=0.25, delta=0.0025, b=3, focus at u=300."""
-    F, f, D, delta, b = 35.0, 2.5, 0.25, 0.0025, 3.0
-    L = mla_distance_for_focus(300.0, F, f, b)
+def optics_focused_at(
+    u0: float, *, F: float, f: float, D: float, b: float, delta: float = 0.0025
+) -> CameraOptics:
+    """The camera with focal lengths ``F, f``, pitch ``D``, MLA-to-sensor ``b`` and pixel
+    ``delta`` (mm) whose focus plane is at object distance ``u0``: ``L`` from it, the main
+    aperture f-number matched (``L/A = b/D``)."""
+    L = mla_distance_for_focus(u0, F, f, b)
     return CameraOptics(
         F=F, f=f, D=D, delta=delta, b=b, L=L, aperture=main_aperture_for_matching(L, b, D)
     )
+
+
+def paper_optics() -> CameraOptics:
+    """The seed paper's Zemax camera: F=35, f=2.5, D=0.25, delta=0.0025, b=3, focus at u=300."""
+    return optics_focused_at(300.0, F=35.0, f=2.5, D=0.25, b=3.0)

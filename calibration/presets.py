@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from .board import Board
-from .optics import CameraOptics, main_aperture_for_matching, mla_distance_for_focus
+from .optics import optics_focused_at
 from .simulator import SensorModel, SimCamera
 
 
@@ -45,18 +45,9 @@ class Preset:
     sweep: SweepPlan
 
 
-def _optics(
-    F: float, f: float, D: float, b: float, u0: float, delta: float = 0.0025
-) -> CameraOptics:
-    L = mla_distance_for_focus(u0, F, f, b)
-    return CameraOptics(
-        F=F, f=f, D=D, delta=delta, b=b, L=L, aperture=main_aperture_for_matching(L, b, D)
-    )
-
-
 def _paper() -> Preset:
     cam = SimCamera(
-        optics=_optics(F=35.0, f=2.5, D=0.25, b=3.0, u0=300.0),
+        optics=optics_focused_at(300.0, F=35.0, f=2.5, D=0.25, b=3.0),
         sensor=SensorModel(width=5120, height=5120),
         board=Board(),
         mla_rotation_deg=0.15,
@@ -73,7 +64,7 @@ def _paper() -> Preset:
 
 def _rotated() -> Preset:
     cam = SimCamera(
-        optics=_optics(F=50.0, f=2.0, D=0.2, b=2.45, u0=432.37),
+        optics=optics_focused_at(432.37, F=50.0, f=2.0, D=0.2, b=2.45),
         sensor=SensorModel(
             width=5120,
             height=5120,
@@ -96,7 +87,7 @@ def _rotated() -> Preset:
 
 def _noisy() -> Preset:
     cam = SimCamera(
-        optics=_optics(F=40.0, f=3.0, D=0.3, b=3.6, u0=347.6),
+        optics=optics_focused_at(347.6, F=40.0, f=3.0, D=0.3, b=3.6),
         sensor=SensorModel(
             width=5120,
             height=5120,

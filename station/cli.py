@@ -70,11 +70,7 @@ def _override_optics(preset: Any, args: argparse.Namespace) -> Any:
     """The preset with the optics given on the command line (focus plane kept unless given)."""
     from dataclasses import replace
 
-    from calibration.optics import (
-        CameraOptics,
-        main_aperture_for_matching,
-        mla_distance_for_focus,
-    )
+    from calibration.optics import optics_focused_at
 
     o = preset.camera.optics
     given = {
@@ -95,10 +91,7 @@ def _override_optics(preset: Any, args: argparse.Namespace) -> Any:
             raise ValueError(f"b = {b} mm must exceed f = {f} mm (a = 1/(1/f - 1/b) would be <= 0)")
         if not D > 0:
             raise ValueError(f"D = {D} mm must be a positive pitch")
-        L = mla_distance_for_focus(u0, F, f, b)
-        optics = CameraOptics(
-            F=F, f=f, D=D, delta=o.delta, b=b, L=L, aperture=main_aperture_for_matching(L, b, D)
-        )
+        optics = optics_focused_at(u0, F=F, f=f, D=D, b=b, delta=o.delta)
         camera = replace(preset.camera, optics=optics)
     except ValueError as exc:
         raise UserError(f"impossible optics: {exc}") from None

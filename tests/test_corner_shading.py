@@ -16,11 +16,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calibration.board import Board
+from calibration.archive import SweepManifest
 from calibration.corners import CornerOptions
-from calibration.optics import CameraOptics, main_aperture_for_matching, mla_distance_for_focus
+from calibration.optics import optics_focused_at
 from calibration.pipeline import FrameAnalyzer
-from calibration.presets import get_preset
+from calibration.presets import Preset, SweepPlan, get_preset
+from calibration.sim_sweep import manifest_header
 from calibration.simulator import SimCamera, corner_images_px, image_centre_scale, render_frame
 from calibration.summary import SweepGeometry
 
@@ -29,38 +30,19 @@ U0_MM = 220.3
 
 def _camera() -> SimCamera:
     """The 50 px-lens camera of the benchmark's coverage sweeps (F 25, f 1.5, b 1.95 mm)."""
-    L = mla_distance_for_focus(U0_MM, 25.0, 1.5, 1.95)
-    optics = CameraOptics(
-        F=25.0,
-        f=1.5,
-        D=0.125,
-        delta=0.0025,
-        b=1.95,
-        L=L,
-        aperture=main_aperture_for_matching(L, 1.95, 0.125),
-    )
     paper = get_preset("paper").camera
     sensor = dataclasses.replace(
         paper.sensor, width=2160, height=480, principal_point_px=(1897.5, 266.5)
     )
+    optics = optics_focused_at(U0_MM, F=25.0, f=1.5, D=0.125, b=1.95)
     return dataclasses.replace(paper, optics=optics, sensor=sensor)
 
 
 @pytest.fixture(scope="module")
 def scene() -> tuple[SimCamera, FrameAnalyzer, list[tuple[float, np.ndarray]]]:
     cam = _camera()
-    geometry = SweepGeometry(
-        width=cam.sensor.width,
-        height=cam.sensor.height,
-        pixel_pitch_mm=cam.optics.delta,
-        principal_point_px=cam.sensor.pp,
-        main_focal_mm=cam.optics.F,
-        mla_focal_mm=cam.optics.f,
-        mla_pitch_mm=cam.optics.D,
-        board=Board(),
-        zero_object_distance_mm=U0_MM,
-        direction=1,
-    )
+    preset = Preset("small", "the coverage camera", cam, SweepPlan(U0_MM, direction=1))
+    geometry = SweepGeometry.from_manifest(SweepManifest.from_dict(manifest_header(preset)))
     white = render_frame(cam, object_distance_mm=U0_MM, white=True, noise=False)
     analyzer = FrameAnalyzer.from_white(geometry, white)
     frames = [
