@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_slope import refine_slope
 from .edge_spread import EdgeProfiles
 from .flat_field import FlatField
 from .lens_grid import LensGrid
@@ -61,6 +62,7 @@ class CornerLattice:
     slope_h: float = 0.0
     half_px: tuple[float, float] = (0.0, 0.0)
     half_var_px2: tuple[float, float] = (0.0, 0.0)
+    slope_var: tuple[float, float] = (float("inf"), float("inf"))
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,9 @@ class PlacedProfiles:
     profiles: EdgeProfiles
     jitter_px: float
     jitter_fixed_scale_px: float
+    slope_corrections: tuple[float, float] = (0.0, 0.0)
+    """What the profiles changed the lattice's slopes by: (vertical edge ``dx/dy``,
+    horizontal edge ``dy/dx``; :mod:`calibration.edge_slope`)."""
 
 
 def half_edge_profiles(
@@ -123,6 +128,8 @@ def half_edge_profiles(
     sigma[3, 3], sigma[4, 4] = lattice.half_var_px2
     parts = []
     gradients = []
+    slope_var: list[tuple[float, int]] = []  # the refined slopes' placement variance
+    corrections = [0.0, 0.0]
     # the white image's shading gradient at each micro-image centre (the flat field's tilt)
     tilt = window.flat_field.gradients((cx, cy), (mx, my))
     for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
@@ -136,7 +143,16 @@ def half_edge_profiles(
             )
         if cut is None:
             continue
-        x, y, lens, half, sign = cut
+        x, y, lens, half, sign, along = cut
+        # the edge's slope from every profile across it (the lattice's is a median of a few
+        # micro-images' own: :mod:`calibration.edge_slope`)
+        lever_along = sign * along
+        measured = refine_slope(x, y, along, sign, lens * 2 + half, half)
+        delta, var = measured.combined(lattice.slope_var[axis])
+        x = x - delta * lever_along[:, None]
+        corrections[axis] = delta
+        if np.isfinite(var):
+            slope_var.append((var * float(np.var(lever_along)), lens.size))
         parts.append((x, y, lens * 4 + 2 * axis + half))
         # d(sample position)/d(parameters): x = sign·(column - edge), the edge moving with
         # m·δ(1+Q) + δc and by +δhalf before the corner, -δhalf after it
@@ -159,10 +175,12 @@ def half_edge_profiles(
     direction[0] = 1.0
     if sigma[0, 0] > 0:
         direction[1:3] = sigma[1:3, 0] / sigma[0, 0]
+    extra = sum(v * n for v, n in slope_var) / max(label.size, 1)
     return PlacedProfiles(
         EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
-        _placement_jitter(grads, sigma),
-        _placement_jitter(grads, _scale_known(sigma)),
+        float(np.hypot(_placement_jitter(grads, sigma), np.sqrt(extra))),
+        float(np.hypot(_placement_jitter(grads, _scale_known(sigma)), np.sqrt(extra))),
+        (corrections[0], corrections[1]),
     )
 
 
@@ -207,6 +225,7 @@ def _cut(
         NDArray[np.int64],
         NDArray[np.int64],
         NDArray[np.float64],
+        NDArray[np.float64],
     ]
     | None
 ):
@@ -215,8 +234,9 @@ def _cut(
     For the vertical edge ``across`` is x and ``along`` is y (row profiles);
     ``transposed`` swaps them for the horizontal edge. Returns the samples'
     signed distances from the edge, their values, the micro-image (index into
-    the inputs), the half (0 before the corner along the edge, 1 after) and the
-    sign that made the dark side negative.
+    the inputs), the half (0 before the corner along the edge, 1 after), the
+    sign that made the dark side negative and each profile's distance along the edge
+    from its micro-image's corner image.
     """
     height, width = image.shape
     r = window.plateau_px
@@ -276,4 +296,5 @@ def _cut(
         lens,
         np.asarray(half, dtype=np.int64),
         np.asarray(sign, dtype=np.float64),
+        np.asarray(dist[lens, line], dtype=np.float64),
     )

@@ -245,9 +245,20 @@ def _corner_lattice(
         covariance=np.asarray(cov, dtype=np.float64),
         slope_v=float(np.median(slopes[:, 0])),
         slope_h=float(np.median(slopes[:, 1])),
+        slope_var=_median_var(slopes),
         half_px=half,  # type: ignore[arg-type]
         half_var_px2=half_var,  # type: ignore[arg-type]
     )
+
+
+def _median_var(values: NDArray[np.float64]) -> tuple[float, float]:
+    """Variance of each column's median: π/2 times that of its mean (normal errors); inf
+    from fewer than two values."""
+    n = values.shape[0]
+    if n < 2:
+        return float("inf"), float("inf")
+    var = np.var(values, axis=0, ddof=1) * (0.5 * np.pi) / n
+    return float(var[0]), float(var[1])
 
 
 def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:
