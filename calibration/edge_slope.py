@@ -26,6 +26,7 @@ normalised by their own dark and light ends, medians over the block).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -220,6 +221,25 @@ def _bspline_basis(
     return design, design_slope
 
 
+@lru_cache(maxsize=64)
+def _lattice_basis(n_fine: int, n_coef: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The spline's design on the uniform lattice of :data:`SPLINE_LATTICE` points per knot
+    spacing (``n_fine + 2`` points; shared, read-only)."""
+    at, slope_at = _bspline_basis(np.arange(n_fine + 2) / SPLINE_LATTICE, n_coef)
+    at.flags.writeable = False
+    slope_at.flags.writeable = False
+    return at, slope_at
+
+
+@lru_cache(maxsize=64)
+def _curvature_penalty(n_coef: int) -> NDArray[np.float64]:
+    """``DᵀD`` of the coefficients' second differences (shared, read-only)."""
+    second = np.diff(np.eye(n_coef), 2, axis=0)
+    penalty = second.T @ second
+    penalty.flags.writeable = False
+    return penalty
+
+
 def _pooled(
     x: NDArray[np.float64], value: NDArray[np.float64], weight: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -243,13 +263,12 @@ def _pooled(
     weighted = design * sum_w[filled][:, None]
     normal = design.T @ weighted
     # a faint curvature penalty keeps knots without samples (the function's flat ends) tied
-    second = np.diff(np.eye(n_coef), 2, axis=0)
-    normal += 1e-6 * float(np.trace(normal)) / n_coef * (second.T @ second)
+    normal += 1e-6 * float(np.trace(normal)) / n_coef * _curvature_penalty(n_coef)
     try:
         coef = np.linalg.solve(normal, weighted.T @ mean_v)
     except np.linalg.LinAlgError:
         return np.full_like(x, np.nan), np.zeros_like(x)
-    at, slope_at = _bspline_basis(np.arange(n_fine + 2) / SPLINE_LATTICE, n_coef)
+    at, slope_at = _lattice_basis(n_fine, n_coef)
     on_lattice, slope_on_lattice = at @ coef, slope_at @ coef
     frac = u * SPLINE_LATTICE - fine  # linear interpolation on the uniform lattice
     fitted = on_lattice[fine] + frac * (on_lattice[fine + 1] - on_lattice[fine])
