@@ -95,8 +95,9 @@ def refine_slope(
     dark side negative (``x = sign·(column - edge)``); ``block``: the profile's block
     (micro-image and half-edge), whose ``ends`` outer samples on each side set its
     dark and light levels; ``half``: 0 before the corner along the edge, 1 after (each
-    half's common shift is fitted with the slope). Returns the correction to add to the slope: the edge lies
-    at ``s + (slope + delta)·t``.
+    half's common shift is fitted with the slope). Returns the correction to add to the
+    slope (the edge lies at ``s + (slope + delta)·t``) and its block-clustered standard
+    error.
     """
     n_prof = x.shape[0]
     if n_prof < MIN_PROFILES or np.ptp(along_px) <= 0:
