@@ -20,7 +20,7 @@ from .archive_errors import (
     NotGrayscaleError,
     WrongImageSizeError,
 )
-from .png import PNG_SIGNATURE, encode_png_gray16
+from .png import PNG_SIGNATURE, decode_png_gray16, encode_png_gray16
 
 _PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
 
@@ -77,7 +77,13 @@ def decode_image(
         raise BitDepthError(
             path, f"{bits}-bit PNG cannot hold {bit_depth}-bit counts (a 16-bit PNG is needed)"
         )
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    # the station's own frames by the fast path; any other PNG, or a damaged one, by OpenCV
+    fast = decode_png_gray16(data)
+    img = (
+        fast
+        if fast is not None
+        else cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    )
     if img is None:
         raise CorruptImageError(path, "corrupt PNG (cannot be decoded)")
     if img.ndim != 2:

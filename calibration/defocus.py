@@ -318,12 +318,12 @@ def jackknife_defocus(
     bounds = _q_bounds(q)
     start = np.array([fit.Q0, fit.kappa, fit.shape_box])
 
+    full = DefocusProblem(obs, lens_pitch_px)
+
     def left_out(block: NDArray[np.int64]) -> tuple[float, float]:
-        dropped = set(block.tolist())
-        kept = [o for k, o in enumerate(obs) if k not in dropped]
-        prob = DefocusProblem(kept, lens_pitch_px)
-        prob.scale_noise(np.array([fit.frame_noise_scale.get(o.frame, 1.0) for o in kept]))
-        theta, cov, robust, _ = prob.fit(start, np.arange(len(kept)), bounds)
+        prob = full.without(block)
+        prob.scale_noise(np.array([fit.frame_noise_scale.get(o.frame, 1.0) for o in prob.obs]))
+        theta, cov, robust, _ = prob.fit(start, np.arange(len(prob.obs)), bounds)
         return float(theta[0]), float(np.sqrt(max(cov[0, 0], robust[0, 0], 0.0)))
 
     with ThreadPoolExecutor(JACKKNIFE_THREADS) as pool:

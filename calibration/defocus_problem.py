@@ -12,6 +12,7 @@ covariances. Positions in pixels along the edge normal, ``Q`` dimensionless.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -177,11 +178,13 @@ class DefocusProblem:
             int(np.ceil(2 * (FIT_HALF_PX + STATIC_HALF_PX + 1.0) / self.LATTICE_PX)) + 2
         )
         row_start = (np.arange(n) * self.n_lattice)[:, None, None]
-        self.index, self.frac = [], []
+        # native-width indices: a gather with int32 indices converts them on every call
+        self.index: list[NDArray[np.intp]] = []
+        self.frac: list[NDArray[np.float32]] = []
         for e in ends:
             t = (e - self.start) / self.LATTICE_PX
             j = np.floor(t)
-            self.index.append((row_start + j).astype(np.int32).ravel())
+            self.index.append((row_start + j).astype(np.intp).ravel())
             self.frac.append((t - j).ravel().astype(np.float32))
         self.shape = (n, n_bins, n_cells)
         self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
@@ -211,19 +214,37 @@ class DefocusProblem:
             integral[jittered] = smooth
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
+        # linear interpolation on the lattice from its values and forward differences
         flat = integral.ravel().astype(np.float32)
+        step = np.zeros_like(flat)
+        np.subtract(flat[1:], flat[:-1], out=step[:-1])
         out = np.zeros(self.index[0].size, dtype=np.float32)
         for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), self.index, self.frac, strict=True):
-            lo = flat.take(j)
-            hi = flat.take(j + 1)
-            hi -= lo
-            hi *= f
-            hi += lo
+            value = step.take(j)
+            value *= f
+            value += flat.take(j)
             if sign > 0:
-                out += hi
+                out += value
             else:
-                out -= hi
+                out -= value
         return (out.reshape(self.shape) / self.norm).astype(np.float64)
+
+    def without(self, dropped: NDArray[np.int64]) -> DefocusProblem:
+        """The same problem with the observations at ``dropped`` left out (their data, noise
+        scales and lattice rows), as if built from the others (a jackknife's refit)."""
+        keep = np.setdiff1d(np.arange(self.shape[0]), dropped)
+        sub = copy.copy(self)
+        sub.obs = [self.obs[k] for k in keep]
+        for name in ("v", "w", "w_data", "noise_scale", "xbar", "q", "jitter", "frame", "norm"):
+            setattr(sub, name, getattr(self, name)[keep])
+        sub._extra = np.zeros_like(sub.xbar)
+        # lattice rows renumbered: row k of the kept ones starts at k·n_lattice
+        shift = ((keep - np.arange(keep.size)) * self.n_lattice)[:, None]
+        sub.index = [(j.reshape(self.shape[0], -1)[keep] - shift).ravel() for j in self.index]
+        sub.frac = [f.reshape(self.shape[0], -1)[keep].ravel() for f in self.frac]
+        sub.shape = (keep.size, *self.shape[1:])
+        sub.data_scale = float(np.mean(np.sum(sub.w_data**2, axis=1)))
+        return sub
 
     def solve_linear(
         self, a: NDArray[np.float64], rows: NDArray[np.int64]

@@ -16,7 +16,7 @@ import multiprocessing
 import os
 import sys
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -165,24 +165,49 @@ class FrameAnalyzer:
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(root: str, analyzer: FrameAnalyzer) -> None:
+def _worker_init(root: str) -> None:
     _WORKER["archive"] = SweepArchive.open(root)
-    _WORKER["analyzer"] = analyzer
+    _WORKER["analyzer"] = None
 
 
-def _pool_worker_init(root: str, analyzer: FrameAnalyzer) -> None:
+def _pool_worker_init(root: str) -> None:
     """A pool process's initializer: one BLAS thread for its life (:mod:`.blas_threads`)."""
     single_blas_thread()
-    _worker_init(root, analyzer)
+    _worker_init(root)
 
 
-def _worker_analyze(index: int, rail_mm: float) -> FrameSummary | str:
-    """Decode and analyse one frame in a worker; the error text when it cannot be read."""
+def _worker_ready() -> None:
+    """A task that only makes the pool start a process."""
+
+
+def _worker_analyze(index: int, rail_mm: float, analyzer: FrameAnalyzer) -> FrameSummary | str:
+    """Decode and analyse one frame in a worker; the error text when it cannot be read.
+
+    Every task carries the analyzer (a few kB); a worker keeps the first it receives, whose
+    pixel map it builds once."""
+    if _WORKER["analyzer"] is None:
+        _WORKER["analyzer"] = analyzer
     try:
         image = _WORKER["archive"].frame(index)
     except ImageError as exc:
         return str(exc)
     return _WORKER["analyzer"].analyze(index, rail_mm, image)
+
+
+def _start_pool(root: str, workers: int) -> ProcessPoolExecutor:
+    """``workers`` analysis processes, started at once (they import the calibration while
+    the caller fits the white image): forked from a server that has imported this module."""
+    if sys.platform == "win32":
+        ctx: Any = multiprocessing.get_context("spawn")
+    else:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload([__name__])
+    pool = ProcessPoolExecutor(
+        workers, mp_context=ctx, initializer=_pool_worker_init, initargs=(root,)
+    )
+    for _ in range(workers):
+        pool.submit(_worker_ready)
+    return pool
 
 
 def default_workers() -> int:
@@ -207,6 +232,39 @@ def calibrate_archive(
         return _calibrate_archive(path, options=options, progress=progress, workers=workers)
 
 
+def _analyzer(
+    archive: SweepArchive, geometry: SweepGeometry, options: CalibrationOptions | None
+) -> FrameAnalyzer:
+    """The sweep's analyzer from its white image, or a :class:`CalibrationError` saying why not."""
+    try:
+        white = archive.white()
+    except ImageError as exc:
+        raise CalibrationError(f"white image unusable: {exc}") from exc
+    try:
+        return FrameAnalyzer.from_white(geometry, white, options)
+    except ValueError as exc:
+        raise CalibrationError(f"no microlens grid in the white image: {exc}") from exc
+
+
+def _analyzer_and_pool(
+    archive: SweepArchive,
+    geometry: SweepGeometry,
+    options: CalibrationOptions | None,
+    workers: int,
+) -> tuple[FrameAnalyzer, ProcessPoolExecutor]:
+    """The analyzer and the worker pool, started (a forkserver imports the calibration, then
+    forks the workers: ~0.8 s) while the white image is fitted; no pool when that fails."""
+    with ThreadPoolExecutor(1) as starter:
+        starting = starter.submit(_start_pool, str(archive.root), workers)
+        try:
+            analyzer = _analyzer(archive, geometry, options)
+        except BaseException:
+            if starting.exception() is None:
+                starting.result().shutdown(cancel_futures=True)
+            raise
+        return analyzer, starting.result()
+
+
 def _calibrate_archive(
     path: str | Path,
     *,
@@ -220,18 +278,11 @@ def _calibrate_archive(
         check_priors(geometry.priors(), np.array([e.rail_mm for e in archive.manifest.frames]))
     except ModelError as exc:
         raise PriorError(str(exc)) from exc
-    try:
-        white = archive.white()
-    except ImageError as exc:
-        raise CalibrationError(f"white image unusable: {exc}") from exc
-    try:
-        analyzer = FrameAnalyzer.from_white(geometry, white, options)
-    except ValueError as exc:
-        raise CalibrationError(f"no microlens grid in the white image: {exc}") from exc
     summaries: list[FrameSummary] = []
     skipped: dict[int, str] = {}
     entries = archive.manifest.frames
     n_workers = default_workers() if workers is None else max(1, workers)
+    root = str(archive.root)
 
     def collect(entry_index: int, outcome: FrameSummary | str, done: int) -> None:
         if isinstance(outcome, str):
@@ -242,18 +293,16 @@ def _calibrate_archive(
             progress(done, len(entries))
 
     if n_workers == 1 or len(entries) < 4:
-        _worker_init(str(archive.root), analyzer)
+        analyzer = _analyzer(archive, geometry, options)
+        _worker_init(root)
         for n, entry in enumerate(entries):
-            collect(entry.index, _worker_analyze(entry.index, entry.rail_mm), n + 1)
+            collect(entry.index, _worker_analyze(entry.index, entry.rail_mm, analyzer), n + 1)
     else:
-        ctx = multiprocessing.get_context("forkserver" if sys.platform != "win32" else "spawn")
-        with ProcessPoolExecutor(
-            n_workers,
-            mp_context=ctx,
-            initializer=_pool_worker_init,
-            initargs=(str(archive.root), analyzer),
-        ) as pool:
-            futures = {pool.submit(_worker_analyze, e.index, e.rail_mm): e.index for e in entries}
+        analyzer, pool = _analyzer_and_pool(archive, geometry, options, n_workers)
+        with pool:
+            futures = {
+                pool.submit(_worker_analyze, e.index, e.rail_mm, analyzer): e.index for e in entries
+            }
             for n, fut in enumerate(as_completed(futures)):
                 collect(futures[fut], fut.result(), n + 1)
     try:

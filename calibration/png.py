@@ -13,20 +13,25 @@ micro-images) while skipping the string matching that finds little in noise.
 
 The output is a standard PNG (IHDR, one IDAT, IEND) that every reader decodes
 bit-exactly; it carries no gamma or colour chunks: pixel values are counts.
+:func:`decode_png_gray16` reads such PNGs back about twice as fast as OpenCV (the
+archive's frames are decoded for every calibration); other PNGs are left to OpenCV.
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
+from isal import isal_zlib
 from numpy.typing import NDArray
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _FILTER_NONE = 0
 _FILTER_SUB = 1
+_INFLATE_ERRORS: tuple[type[Exception], ...] = (cast(type[Exception], isal_zlib.error), ValueError)
+"""What ISA-L's inflate raises on a damaged stream (its stub declares ``error`` an instance)."""
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
@@ -69,4 +74,71 @@ def encode_png_gray16(image: NDArray[Any], *, level: int = 1) -> bytes:
     return PNG_SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
 
 
-__all__ = ["PNG_SIGNATURE", "encode_png_gray16"]
+def _simple_chunks(data: bytes) -> tuple[tuple[int, ...], bytes] | None:
+    """IHDR's fields and the joined IDAT payload, or None when a chunk runs past the end,
+    the IHDR or an IDAT chunk fails its CRC, or IEND is missing."""
+    view = memoryview(data)
+    pos, header, idat = len(PNG_SIGNATURE), None, []
+    while pos + 12 <= len(data):
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        end = pos + 12 + length
+        if end > len(data):
+            return None
+        if kind in (b"IHDR", b"IDAT"):
+            (crc,) = struct.unpack_from(">I", data, end - 4)
+            if isal_zlib.crc32(view[pos + 4 : end - 4]) != crc:
+                return None
+            body = view[pos + 8 : end - 4]
+            if kind == b"IHDR":
+                if length != 13:
+                    return None
+                header = struct.unpack(">IIBBBBB", body)
+            else:
+                idat.append(body)
+        elif kind == b"IEND":
+            return (header, b"".join(idat)) if header is not None else None
+        pos = end
+    return None
+
+
+def decode_png_gray16(data: bytes) -> NDArray[np.uint16] | None:
+    """The counts ``(height, width)`` of a PNG as :func:`encode_png_gray16` writes it, or None.
+
+    Decodes 16-bit grey, non-interlaced PNGs whose rows are stored unfiltered or
+    with "Sub" (the station's frames) about twice as fast as a general reader
+    (ISA-L's inflate; "Sub" undone by a running sum per byte lane). Returns None for
+    any other PNG (other bit depths, colour types or row filters) and for a damaged
+    one (a CRC mismatch, a bad deflate stream, the wrong amount of data): the caller
+    hands those to a general reader, which decodes or diagnoses them.
+    """
+    if not data.startswith(PNG_SIGNATURE):
+        return None
+    chunks = _simple_chunks(data)
+    if chunks is None:
+        return None
+    (width, height, bits, colour, compression, filtering, interlace), stream = chunks
+    if (bits, colour, compression, filtering, interlace) != (16, 0, 0, 0, 0):
+        return None
+    try:
+        raw = isal_zlib.decompress(stream)
+    except _INFLATE_ERRORS:
+        return None
+    row_bytes = 2 * width + 1
+    if width == 0 or height == 0 or len(raw) != height * row_bytes:
+        return None
+    rows = np.frombuffer(raw, dtype=np.uint8).reshape(height, row_bytes)
+    kinds = rows[:, 0]
+    if np.any(kinds > _FILTER_SUB):
+        return None
+    samples = rows[:, 1:].reshape(height, width, 2)
+    # Sub: each byte plus the decoded byte one pixel (2 bytes) to its left, modulo 256
+    if np.all(kinds == _FILTER_SUB):
+        samples = np.cumsum(samples, axis=1, dtype=np.uint8)
+    elif np.any(kinds == _FILTER_SUB):
+        sub = kinds == _FILTER_SUB
+        samples = samples.copy()
+        samples[sub] = np.cumsum(samples[sub], axis=1, dtype=np.uint8)
+    return samples.view(">u2")[:, :, 0].astype(np.uint16)
+
+
+__all__ = ["PNG_SIGNATURE", "decode_png_gray16", "encode_png_gray16"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -396,3 +397,33 @@ def test_calibrated_patch_size_renders_with_fewer_seams(sweep: Path, result: dic
     sizes = [render_p(p) for p in (p_cal, designed, 0.9 * p_cal, 1.1 * p_cal)]
     scores = seam_scan(raw, image_grid=grid, patch_sizes_px=sizes)
     assert scores[0] < min(scores[1:])
+
+
+def test_an_unusable_white_image_is_reported_and_stops_the_workers(
+    sweep: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The analysis processes start while the white image is read and fitted; when it cannot
+    be, the calibration says so and leaves no worker behind."""
+    from calibration import pipeline
+
+    broken = tmp_path / "broken-white"
+    shutil.copytree(sweep, broken)
+    white = (broken / "white.png").read_bytes()
+    (broken / "white.png").write_bytes(white[: len(white) // 2])
+    started: list[int] = []
+    real_start = pipeline._start_pool
+
+    def start_pool(root: str, workers: int) -> pipeline.ProcessPoolExecutor:
+        pool = real_start(root, workers)
+        started.extend(p.pid for p in pool._processes.values())  # type: ignore[union-attr]
+        return pool
+
+    monkeypatch.setattr(pipeline, "_start_pool", start_pool)
+    code = main(["calibrate", str(broken)])
+    err = capsys.readouterr().err
+    assert code != 0
+    assert "white image unusable" in err and "white.png" in err
+    assert len(started) >= 2
+    for pid in started:  # joined by the pool's shutdown before the error was reported
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)

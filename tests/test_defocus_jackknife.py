@@ -10,7 +10,10 @@ one, and the jackknife must see it, say so and carry it.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
+from numpy.testing import assert_array_equal
 from scipy.stats import norm
 from test_defocus import LENS_PITCH_PX, Q0, Q_SWEEP, _esf
 
@@ -22,6 +25,7 @@ from calibration.defocus import (
     jackknife_defocus,
     jackknife_warning,
 )
+from calibration.defocus_problem import DefocusProblem
 from calibration.edge_spread import BinnedEsf
 
 QS = Q_SWEEP[::2]  # 25 frames, focus near frame 9
@@ -91,3 +95,30 @@ def test_a_sweep_too_short_for_blocks_is_left_alone() -> None:
     jack = jackknife_defocus(obs, fit, lens_pitch_px=LENS_PITCH_PX)
     assert jack is fit
     assert jack.jackknife_consistent is None and np.isnan(jack.Q0_se_jackknife)
+
+
+def test_a_block_left_out_is_the_problem_built_without_it() -> None:
+    """The jackknife's refits slice the full problem (:meth:`DefocusProblem.without`) instead
+    of building it again: the same data, lattice rows and residuals as a problem built from
+    the remaining observations, whatever noise scales the full one carries."""
+    # every third observation's edge placed with a jitter the model averages over
+    obs = [
+        replace(o, esf=replace(o.esf, jitter_px=0.05)) if k % 3 == 0 else o
+        for k, o in enumerate(_sweep(3))
+    ]
+    scales = np.linspace(1.0, 2.0, len(obs))
+    full = DefocusProblem(obs, LENS_PITCH_PX)
+    full.scale_noise(scales)
+    dropped = np.array([0, 5, 6, 24])
+    keep = np.setdiff1d(np.arange(len(obs)), dropped)
+    sub = full.without(dropped)
+    built = DefocusProblem([obs[k] for k in keep], LENS_PITCH_PX)
+    assert [o.frame for o in sub.obs] == keep.tolist()
+    assert_array_equal(sub.noise_scale, scales[keep])
+    sub.scale_noise(np.ones(keep.size))
+    rows = np.arange(keep.size)
+    for theta in ([Q0, 0.9, 0.5], [Q0 + 0.002, 0.6, 0.0], [Q0 - 0.003, 1.0, 1.0]):
+        t = np.array(theta)
+        assert_array_equal(sub.residuals(t, rows), built.residuals(t, rows))
+    assert sub.data_scale == built.data_scale
+    assert full.shape[0] == len(obs)  # the full problem is left as it was
