@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares, nnls
 
+from .cluster_robust import clustered_meat
 from .edge_spread import ESF_BIN_PX, BinnedEsf
 
 STATIC_STEP_PX = 0.05
@@ -358,11 +359,7 @@ class DefocusProblem:
         n_bins = self.w.shape[1]
         score = (jac * fit.fun[:, None]).reshape(rows.size, n_bins, jac.shape[1]).sum(axis=1)
         frames = self.frame[rows]
-        clusters = np.unique(frames)
-        per = np.zeros((clusters.size, jac.shape[1]))
-        np.add.at(per, np.searchsorted(clusters, frames), score)
-        g = clusters.size
-        meat = per.T @ per * (g / max(g - 1, 1))
+        meat = clustered_meat(score, np.unique(frames, return_inverse=True)[1], parameters_lost=1)
         bread, robust = np.zeros((3, 3)), np.zeros((3, 3))
         bread[np.ix_(free, free)] = bread_free
         robust[np.ix_(free, free)] = bread_free @ meat @ bread_free

@@ -31,6 +31,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
+from .cluster_robust import clustered_meat
+
 POOL_KNOT_PX = 0.5
 """Knot spacing of the pooled function's spline (pixels)."""
 
@@ -153,12 +155,7 @@ def _cluster_se(
     each micro-image's edge is locked to the pixel grid, so its profiles move together
     by up to a few tenths of a pixel, which samples taken as independent would hide.
     """
-    n_clusters = int(cluster.max()) + 1
-    score = np.zeros((n_clusters, design.shape[1]))
-    for k in range(design.shape[1]):
-        score[:, k] = np.bincount(cluster, design[:, k] * resid, minlength=n_clusters)
-    used = int(np.count_nonzero(np.any(score != 0.0, axis=1)))
-    meat = score.T @ score * (used / max(used - design.shape[1], 1))
+    meat = clustered_meat(design * resid[:, None], cluster, parameters_lost=design.shape[1])
     var = float((inverse @ meat @ inverse)[-1, -1])
     return float(np.sqrt(var)) if var > 0 else float("nan")
 
