@@ -190,6 +190,13 @@ class DefocusProblem:
         self.shape = (n, n_bins, n_cells)
         self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
         self.norm = (4.0 * half)[:, :, None].astype(np.float32)  # 2w (bin average) x 2 (mirror)
+        # ∫C follows the ramp max(t, 0) outside the kernel: its part of every interval's
+        # difference, IC(x̄+w∓g) - IC(x̄-w∓g), is clip(x̄+w∓g, 0, 2w), taken exactly here
+        # (float64); the float32 lattice holds only the bounded rest, IC - max(t, 0), whose
+        # kink sits on the lattice node t = 0 (so the interpolation is the same as of IC)
+        self.ramp = (np.clip(xb + wb - g, 0.0, 2.0 * wb) + np.clip(xb + wb + g, 0.0, 2.0 * wb)) / (
+            4.0 * wb
+        )
         second = np.zeros((n_cells - 2, n_cells))
         for r in range(n_cells - 2):
             second[r, r : r + 3] = (1.0, -2.0, 1.0)
@@ -215,7 +222,10 @@ class DefocusProblem:
             integral[jittered] = smooth
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
-        # linear interpolation on the lattice from its values and forward differences
+        # linear interpolation on the lattice from its values and forward differences, of the
+        # part beyond the ramp (bounded: float32 keeps ~1e-8 of it where ∫C itself reaches
+        # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
+        integral -= np.maximum(t, 0.0)
         flat = integral.ravel().astype(np.float32)
         step = np.zeros_like(flat)
         np.subtract(flat[1:], flat[:-1], out=step[:-1])
@@ -228,7 +238,7 @@ class DefocusProblem:
                 out += value
             else:
                 out -= value
-        return (out.reshape(self.shape) / self.norm).astype(np.float64)
+        return np.add(out.reshape(self.shape) / self.norm, self.ramp)  # in float64
 
     def without(self, dropped: NDArray[np.int64]) -> DefocusProblem:
         """The same problem with the observations at ``dropped`` left out (their data, noise
@@ -236,7 +246,8 @@ class DefocusProblem:
         keep = np.setdiff1d(np.arange(self.shape[0]), dropped)
         sub = copy.copy(self)
         sub.obs = [self.obs[k] for k in keep]
-        for name in ("v", "w", "w_data", "noise_scale", "xbar", "q", "jitter", "frame", "norm"):
+        names = ("v", "w", "w_data", "noise_scale", "xbar", "q", "jitter", "frame", "norm", "ramp")
+        for name in names:
             setattr(sub, name, getattr(self, name)[keep])
         sub._extra = np.zeros_like(sub.xbar)
         # lattice rows renumbered: row k of the kept ones starts at k·n_lattice
