@@ -20,7 +20,7 @@ from .archive_errors import (
     NotGrayscaleError,
     WrongImageSizeError,
 )
-from .png import PNG_SIGNATURE, decode_png_gray16, encode_png_gray16
+from .png import PNG_SIGNATURE, decode_png_gray16, encode_png_gray16, png_chunks
 
 _PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
 
@@ -32,23 +32,20 @@ def png_header_problem(data: bytes) -> tuple[str | None, tuple[int, int, int, in
     """Walk the PNG chunk structure: (problem or None, IHDR (width, height, bits, colour type))."""
     if not data.startswith(PNG_SIGNATURE):
         return "not a PNG file (bad signature)", None
-    pos, ihdr = len(PNG_SIGNATURE), None
-    while True:
-        if pos + 8 > len(data):
-            return "truncated PNG (no IEND chunk)", ihdr
-        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
-        if pos + 12 + length > len(data):
-            return f"truncated PNG (chunk {ctype!r} runs past the end of the file)", ihdr
-        if ctype == b"IHDR":
-            if length != 13:
+    ihdr = None
+    for chunk in png_chunks(data):
+        if chunk.end > len(data):
+            return f"truncated PNG (chunk {chunk.kind!r} runs past the end of the file)", ihdr
+        if chunk.kind == b"IHDR":
+            if chunk.end - chunk.start != 25:
                 return "corrupt PNG (bad IHDR chunk)", None
-            w, h, bits, colour = struct.unpack(">IIBB", data[pos + 8 : pos + 18])
+            w, h, bits, colour = struct.unpack(">IIBB", chunk.payload(data)[:10])
             ihdr = (w, h, bits, colour)
         elif ihdr is None:
             return "corrupt PNG (first chunk is not IHDR)", None
-        if ctype == b"IEND":
+        if chunk.kind == b"IEND":
             return None, ihdr
-        pos += 12 + length
+    return "truncated PNG (no IEND chunk)", ihdr
 
 
 def decode_image(

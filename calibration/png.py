@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
@@ -74,30 +76,61 @@ def encode_png_gray16(image: NDArray[Any], *, level: int = 1) -> bytes:
     return PNG_SIGNATURE + _chunk(b"IHDR", header) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
 
 
+@dataclass(frozen=True)
+class PngChunk:
+    """One chunk of a PNG file: its type and byte offsets in the file, ``start`` at its
+    length field and ``end`` past its CRC (beyond the file's end when it is truncated)."""
+
+    kind: bytes
+    start: int
+    end: int
+
+    def payload(self, data: bytes) -> memoryview:
+        """The chunk's data (without length, type and CRC)."""
+        return memoryview(data)[self.start + 8 : self.end - 4]
+
+    def crc_ok(self, data: bytes) -> bool:
+        """Whether the CRC-32 over the chunk's type and data matches the one it carries."""
+        (crc,) = struct.unpack_from(">I", data, self.end - 4)
+        return bool(isal_zlib.crc32(memoryview(data)[self.start + 4 : self.end - 4]) == crc)
+
+
+def png_chunks(data: bytes) -> Iterator[PngChunk]:
+    """The chunks after the signature, in file order, up to ``IEND``.
+
+    Stops when the next chunk's 8-byte header does not fit in ``data`` (no ``IEND``: the
+    caller sees the loop end without it); a chunk that runs past the end is yielded
+    (``end > len(data)``) and is the last. Neither the signature nor the CRCs are checked.
+    """
+    pos = len(PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        chunk = PngChunk(kind, pos, pos + 12 + length)
+        yield chunk
+        if chunk.end > len(data) or kind == b"IEND":
+            return
+        pos = chunk.end
+
+
 def _simple_chunks(data: bytes) -> tuple[tuple[int, ...], bytes] | None:
     """IHDR's fields and the joined IDAT payload, or None when a chunk runs past the end,
     the IHDR or an IDAT chunk fails its CRC, or IEND is missing."""
-    view = memoryview(data)
-    pos, header, idat = len(PNG_SIGNATURE), None, []
-    while pos + 12 <= len(data):
-        length, kind = struct.unpack_from(">I4s", data, pos)
-        end = pos + 12 + length
-        if end > len(data):
+    header, idat = None, []
+    for chunk in png_chunks(data):
+        if chunk.end > len(data):
             return None
-        if kind in (b"IHDR", b"IDAT"):
-            (crc,) = struct.unpack_from(">I", data, end - 4)
-            if isal_zlib.crc32(view[pos + 4 : end - 4]) != crc:
+        if chunk.kind in (b"IHDR", b"IDAT"):
+            if not chunk.crc_ok(data):
                 return None
-            body = view[pos + 8 : end - 4]
-            if kind == b"IHDR":
-                if length != 13:
-                    return None
+            body = chunk.payload(data)
+            if chunk.kind == b"IDAT":
+                idat.append(body)
+            elif len(body) == 13:
                 header = struct.unpack(">IIBBBBB", body)
             else:
-                idat.append(body)
-        elif kind == b"IEND":
+                return None
+        elif chunk.kind == b"IEND":
             return (header, b"".join(idat)) if header is not None else None
-        pos = end
     return None
 
 
@@ -141,4 +174,4 @@ def decode_png_gray16(data: bytes) -> NDArray[np.uint16] | None:
     return samples.view(">u2")[:, :, 0].astype(np.uint16)
 
 
-__all__ = ["PNG_SIGNATURE", "decode_png_gray16", "encode_png_gray16"]
+__all__ = ["PNG_SIGNATURE", "PngChunk", "decode_png_gray16", "encode_png_gray16", "png_chunks"]

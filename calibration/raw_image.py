@@ -16,8 +16,6 @@ the caller checks the frame against the calibration
 from __future__ import annotations
 
 import os
-import struct
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +23,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+from .png import PNG_SIGNATURE, png_chunks
+
 TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 
 
@@ -35,7 +34,7 @@ class RawImageError(ValueError):
 
 def image_kind(data: bytes) -> str | None:
     """``"png"``, ``"tiff"`` or None, from the file's signature."""
-    if data.startswith(PNG_MAGIC):
+    if data.startswith(PNG_SIGNATURE):
         return "png"
     if data[:4] in TIFF_MAGICS:
         return "tiff"
@@ -97,24 +96,18 @@ def png_problem(data: bytes) -> str | None:
     one. Checked before decoding, so that libpng never sees (and never prints
     about) a broken file.
     """
-    pos, n = len(PNG_MAGIC), len(data)
-    first = True
-    while True:
-        if pos + 8 > n:
-            return f"truncated PNG file ({n} bytes, no IEND chunk)"
-        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
-        end = pos + 8 + length + 4
-        if end > n:
-            return f"truncated PNG file ({n} bytes; chunk {ctype!r} needs {end})"
-        if first and ctype != b"IHDR":
+    n = len(data)
+    for k, chunk in enumerate(png_chunks(data)):
+        if chunk.end > n:
+            return f"truncated PNG file ({n} bytes; chunk {chunk.kind!r} needs {chunk.end})"
+        if k == 0 and chunk.kind != b"IHDR":
             return "damaged PNG file (the first chunk is not IHDR)"
-        first = False
-        (crc,) = struct.unpack(">I", data[end - 4 : end])
-        if zlib.crc32(data[pos + 4 : end - 4]) != crc:
-            return f"damaged PNG file (CRC error in chunk {ctype.decode('latin-1')} at byte {pos})"
-        if ctype == b"IEND":
+        if not chunk.crc_ok(data):
+            kind = chunk.kind.decode("latin-1")
+            return f"damaged PNG file (CRC error in chunk {kind} at byte {chunk.start})"
+        if chunk.kind == b"IEND":
             return None
-        pos = end
+    return f"truncated PNG file ({n} bytes, no IEND chunk)"
 
 
 def _to_grey(image: NDArray[Any], name: str) -> NDArray[Any]:
