@@ -16,7 +16,8 @@ import statistics
 import time
 from typing import Any
 
-from drivers.sim.zaber_emulator import Transport, ZaberEmulator
+from drivers.sim.emulator_links import Transport
+from drivers.sim.zaber_emulator import ZaberEmulator
 from drivers.zaber import ZaberPort
 
 TARGET_MEDIAN_MS = 1.0

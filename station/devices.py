@@ -42,7 +42,8 @@ from drivers.axis import Axis
 from drivers.camera import Camera, CameraSettings, Roi, TransportSettings, create_camera
 from drivers.errors import DeviceError, PortUnavailable
 from drivers.zaber import XYStage, ZaberAxis, ZaberAxisConfig, ZaberPort, open_rail, open_xy_stage
-from station.config import RailConfig, StationConfig, XYStageConfig
+from station.config import StationConfig
+from station.config_sections import RailConfig, XYStageConfig
 
 SIMULATION_BACKEND: dict[str, str] = {
     "bench": "drivers.sim.bench",

@@ -11,12 +11,12 @@ from calibration.archive import validate_manifest
 from station.config import (
     ConfigError,
     ConfigProblem,
-    RailConfig,
     StationConfig,
     check_config_file,
     config_check_main,
     load_config,
 )
+from station.config_sections import RailConfig
 from station.devices import transport_settings
 
 REPO = Path(__file__).resolve().parents[1]

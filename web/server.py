@@ -134,18 +134,6 @@ def uvicorn_config(
     )
 
 
-def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses."""
-    import ipaddress
-
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def bind_socket(host: str, port: int) -> socket.socket:
     """A listening TCP socket on ``host:port`` (IPv4 or IPv6); ``OSError`` if it cannot bind."""
     infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
@@ -204,6 +192,7 @@ class _Server(uvicorn.Server):
 def serve_main(argv: Sequence[str] | None = None) -> int:
     """``lfcal serve``: run the server until Ctrl-C/SIGTERM; returns the exit code."""
     from station.config import load_config_or_report, with_frame_cache
+    from station.config_checks import is_loopback
     from station.orchestrator import Orchestrator, StationBusy
     from station.store import StoreError
     from web.app import create_app

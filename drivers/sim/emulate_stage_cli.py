@@ -18,7 +18,8 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
-from drivers.sim.zaber_emulator import AxisSpec, DeviceSpec, Transport, ZaberEmulator
+from drivers.sim.emulator_links import Transport
+from drivers.sim.zaber_emulator import AxisSpec, DeviceSpec, ZaberEmulator
 
 
 def build_parser() -> argparse.ArgumentParser:

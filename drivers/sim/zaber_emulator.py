@@ -46,17 +46,12 @@ starts from rest at the current position.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import heapq
 import itertools
-import math
 import os
 import select
-import socket
 import threading
 import time
-import tty
-from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -64,396 +59,19 @@ from types import TracebackType
 from typing import Literal
 
 from drivers.errors import ChecksumError
+from drivers.sim.emulator_links import PtyLink, TcpLink, Transport
+from drivers.sim.zaber_axes import (
+    AxisSpec,
+    DecelerationProfile,
+    DeviceSpec,
+    EmulatedAxis,
+    EmulatedDevice,
+    Motion,
+    MoveFault,
+    ReplyFault,
+    TrapezoidProfile,
+)
 from drivers.zaber import protocol
-
-Transport = Literal["pty", "tcp"]
-
-# --------------------------------------------------------------------------- configuration
-
-
-@dataclass(frozen=True)
-class AxisSpec:
-    """One emulated axis.
-
-    Attributes:
-        microstep_um: size of one microstep (um); sets limit.max from the travel.
-        travel_mm: travel from the home position (mm).
-        speed_mm_s: initial maxspeed (mm/s).
-        accel_mm_s2: initial accel (mm/s^2).
-        start_mm: physical position at power-up (mm from home); reported as 0 with WR.
-    """
-
-    microstep_um: float = 0.1
-    travel_mm: float = 100.0
-    speed_mm_s: float = 20.0
-    accel_mm_s2: float = 200.0
-    start_mm: float = 10.0
-
-    @property
-    def limit_max(self) -> int:
-        """Travel in microsteps."""
-        return round(self.travel_mm * 1000.0 / self.microstep_um)
-
-    @property
-    def maxspeed_data(self) -> int:
-        """Initial maxspeed setting (Zaber data units)."""
-        return protocol.speed_to_data(self.speed_mm_s * 1000.0 / self.microstep_um)
-
-    @property
-    def accel_data(self) -> int:
-        """Initial accel setting (Zaber data units)."""
-        return protocol.accel_to_data(self.accel_mm_s2 * 1000.0 / self.microstep_um)
-
-
-@dataclass(frozen=True)
-class DeviceSpec:
-    """One emulated device on the chain.
-
-    Attributes:
-        address: device number (1-99).
-        axes: the device's axes.
-        device_id: product id (``deviceid`` / ``device.id``).
-        serial: ``system.serial``.
-        firmware: 6 or 7: the setting names and commands of that firmware series
-            (see :data:`FIRMWARE_SETTING_NAMES`).
-        version: ``get version`` answer; default ``"6.32"`` or ``"7.38"`` by firmware.
-        peripheral_id: per-axis ``peripheralid`` / ``peripheral.id``.
-    """
-
-    address: int = 1
-    axes: tuple[AxisSpec, ...] = (AxisSpec(),)
-    device_id: int = 50081
-    serial: int = 100001
-    firmware: int = 7
-    version: str | None = None
-    peripheral_id: int = 70245
-
-    def __post_init__(self) -> None:
-        if self.firmware not in (6, 7):
-            raise ValueError(f"firmware must be 6 or 7, got {self.firmware}")
-
-    @property
-    def version_text(self) -> str:
-        """What ``get version`` answers."""
-        return self.version or ("6.32" if self.firmware == 6 else "7.38")
-
-    @property
-    def version_number(self) -> tuple[int, int]:
-        """(major, minor) of :attr:`version_text`."""
-        major, _, minor = self.version_text.partition(".")
-        return int(major), int(minor or 0)
-
-
-# --------------------------------------------------------------------------- kinematics
-
-
-class _Profile(ABC):
-    """1-D motion: position/velocity as functions of (scaled) time."""
-
-    t0: float
-    end_time: float
-    end_pos: float
-
-    @abstractmethod
-    def position(self, t: float) -> float:
-        """Position (microsteps) at time ``t``."""
-
-    @abstractmethod
-    def velocity(self, t: float) -> float:
-        """Velocity (microsteps per second) at time ``t``."""
-
-
-class _Trapezoid(_Profile):
-    """Rest-to-rest move with maximum speed ``v`` and acceleration ``a`` (units/s, units/s^2)."""
-
-    def __init__(self, t0: float, p0: float, p1: float, v: float, a: float) -> None:
-        self.t0, self.p0, self.end_pos = t0, p0, p1
-        distance = abs(p1 - p0)
-        self.sign = 1.0 if p1 >= p0 else -1.0
-        self.a = a
-        if distance == 0:
-            self.ta, self.tc, self.vp = 0.0, 0.0, 0.0
-        elif distance >= v * v / a:
-            self.ta, self.tc, self.vp = v / a, (distance - v * v / a) / v, v
-        else:
-            self.ta = math.sqrt(distance / a)
-            self.tc, self.vp = 0.0, a * self.ta
-        self.end_time = t0 + 2 * self.ta + self.tc
-
-    def position(self, t: float) -> float:
-        tau = min(max(t - self.t0, 0.0), self.end_time - self.t0)
-        ta, tc, vp, a = self.ta, self.tc, self.vp, self.a
-        if tau <= ta:
-            s = 0.5 * a * tau * tau
-        elif tau <= ta + tc:
-            s = 0.5 * a * ta * ta + vp * (tau - ta)
-        else:
-            rem = 2 * ta + tc - tau
-            total = a * ta * ta + vp * tc
-            s = total - 0.5 * a * rem * rem
-        return self.p0 + self.sign * s
-
-    def velocity(self, t: float) -> float:
-        tau = t - self.t0
-        if tau <= 0 or t >= self.end_time:
-            return 0.0
-        if tau <= self.ta:
-            speed = self.a * tau
-        elif tau <= self.ta + self.tc:
-            speed = self.vp
-        else:
-            speed = self.a * (2 * self.ta + self.tc - tau)
-        return self.sign * speed
-
-
-class _Decel(_Profile):
-    """Deceleration from velocity ``v0`` to rest at ``a`` (a stop)."""
-
-    def __init__(self, t0: float, p0: float, v0: float, a: float) -> None:
-        self.t0, self.p0, self.v0, self.a = t0, p0, v0, a
-        self.duration = abs(v0) / a if a > 0 else 0.0
-        self.end_time = t0 + self.duration
-        self.end_pos = self.position(self.end_time)
-
-    def position(self, t: float) -> float:
-        tau = min(max(t - self.t0, 0.0), self.duration)
-        sign = 1.0 if self.v0 >= 0 else -1.0
-        return self.p0 + self.v0 * tau - sign * 0.5 * self.a * tau * tau
-
-    def velocity(self, t: float) -> float:
-        tau = t - self.t0
-        if tau <= 0 or tau >= self.duration:
-            return 0.0
-        sign = 1.0 if self.v0 >= 0 else -1.0
-        return self.v0 - sign * self.a * tau
-
-
-@dataclass
-class _MoveFault:
-    kind: Literal["stall", "limit", "stuck", "drift", "disconnect", "power"]
-    fraction: float = 0.5
-    flag: str = ""
-    drift: int = 0
-    off_s: float = 0.0
-
-
-@dataclass
-class _Motion:
-    profile: _Profile
-    kind: Literal["move", "home", "stop"]
-    end_flags: tuple[str, ...] = ()
-    stuck_after: bool = False
-
-
-class _Axis:
-    """State of one emulated axis.  Positions in microsteps, times in scaled seconds."""
-
-    def __init__(self, number: int, spec: AxisSpec) -> None:
-        self.number = number
-        self.spec = spec
-        # true position; the home sensor is at 0.  Reported position = phys - offset.
-        self.phys = float(round(spec.start_mm * 1000.0 / spec.microstep_um))
-        self.offset = self.phys
-        self.limit_min = 0
-        self.limit_max = spec.limit_max
-        self.maxspeed = spec.maxspeed_data
-        self.accel = spec.accel_data
-        self.flags: set[str] = {"WR"}
-        self.motion: _Motion | None = None
-        self.stuck = False
-        self.pending_fault: _MoveFault | None = None
-
-    @property
-    def speed(self) -> float:
-        return protocol.data_to_speed(self.maxspeed)
-
-    @property
-    def acceleration(self) -> float:
-        return protocol.data_to_accel(self.accel)
-
-    def phys_at(self, t: float) -> float:
-        return self.motion.profile.position(t) if self.motion else self.phys
-
-    def reported(self, t: float) -> int:
-        return round(self.phys_at(t) - self.offset)
-
-    def busy(self, t: float) -> bool:
-        return self.stuck or (self.motion is not None and t < self.motion.profile.end_time)
-
-    def settle(self, t: float) -> bool:
-        """Finish a motion whose time is over; True if one just finished."""
-        motion = self.motion
-        if motion is None or t < motion.profile.end_time:
-            return False
-        self.phys = motion.profile.end_pos
-        self.motion = None
-        self.flags.update(motion.end_flags)
-        if motion.kind == "home":
-            self.phys, self.offset = 0.0, 0.0
-            self.flags.discard("WR")
-        if motion.stuck_after:
-            self.stuck = True
-        return True
-
-    def halt(self, t: float) -> None:
-        """Freeze at the current position (no motion)."""
-        self.phys = self.phys_at(t)
-        self.motion = None
-        self.stuck = False
-
-    def power_loss(self, t: float) -> None:
-        self.halt(t)
-        self.offset = self.phys
-        self.flags = {"WR"}
-        self.pending_fault = None
-
-
-@dataclass
-class _Device:
-    spec: DeviceSpec
-    axes: list[_Axis]
-    checksum: bool
-    alert: bool
-    dead: bool = False
-    off_until: float = 0.0  # real time until which the device is powered off
-
-    @property
-    def address(self) -> int:
-        return self.spec.address
-
-
-@dataclass
-class _ReplyFault:
-    kind: Literal["drop", "garble", "delay"]
-    remaining: int | None  # None = forever
-    device: int | None
-    delay_s: float = 0.0
-    command: str | None = None  # only replies to commands starting with this
-
-
-# --------------------------------------------------------------------------- links
-
-
-class _PtyLink:
-    """Master side of a raw pseudo-terminal; the driver opens :attr:`path`."""
-
-    def __init__(self) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.slave)  # no echo, no CR/LF translation, 8-bit clean
-        os.set_blocking(self.master, False)
-        self.path = os.ttyname(self.slave)
-        self.alive = True
-
-    @property
-    def url(self) -> str:
-        return self.path
-
-    def read_fds(self) -> list[int]:
-        return [self.master] if self.alive else []
-
-    def on_ready(self, ready: list[int]) -> bytes:
-        if not self.alive or self.master not in ready:
-            return b""
-        try:
-            return os.read(self.master, 4096)
-        except BlockingIOError:
-            return b""
-        except OSError as exc:  # EIO: nobody has the slave open (cannot happen: we hold it)
-            if exc.errno != errno.EIO:
-                raise
-            return b""
-
-    def write(self, data: bytes) -> None:
-        if not self.alive:
-            return
-        try:
-            os.write(self.master, data)
-        except (BlockingIOError, OSError):
-            pass  # nobody reading: bytes are lost, as on a real line
-
-    def disconnect(self) -> None:
-        """Drop the line: the driver's next read/write fails (like an unplugged adapter)."""
-        if self.alive:
-            self.alive = False
-            for fd in (self.master, self.slave):
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-
-    def close(self) -> None:
-        self.disconnect()
-
-
-class _TcpLink:
-    """TCP server on 127.0.0.1 with one client at a time (like a serial line)."""
-
-    def __init__(self, port: int) -> None:
-        self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.listener.bind(("127.0.0.1", port))  # loopback only, never any other address
-        self.listener.listen(1)
-        self.listener.setblocking(False)
-        self.port = self.listener.getsockname()[1]
-        self.client: socket.socket | None = None
-
-    @property
-    def url(self) -> str:
-        return f"socket://127.0.0.1:{self.port}"
-
-    def read_fds(self) -> list[int]:
-        fds = [self.listener.fileno()]
-        if self.client is not None:
-            fds.append(self.client.fileno())
-        return fds
-
-    def on_ready(self, ready: list[int]) -> bytes:
-        data = b""
-        if self.client is not None and self.client.fileno() in ready:
-            try:
-                data = self.client.recv(4096)
-            except OSError:
-                data = b""
-            if not data:
-                self._drop_client()
-        if self.listener.fileno() in ready:
-            try:
-                conn, _ = self.listener.accept()
-            except OSError:
-                conn = None
-            if conn is not None:
-                if self.client is None:
-                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                    conn.settimeout(1.0)
-                    self.client = conn
-                else:
-                    conn.close()  # the line is taken
-        return data
-
-    def write(self, data: bytes) -> None:
-        if self.client is None:
-            return
-        try:
-            self.client.sendall(data)
-        except OSError:
-            self._drop_client()
-
-    def _drop_client(self) -> None:
-        if self.client is not None:
-            try:
-                self.client.close()
-            except OSError:
-                pass
-            self.client = None
-
-    def disconnect(self) -> None:
-        """Close the current client connection; new connections are still accepted."""
-        self._drop_client()
-
-    def close(self) -> None:
-        self._drop_client()
-        self.listener.close()
-
 
 # --------------------------------------------------------------------------- emulator
 
@@ -559,7 +177,9 @@ class ZaberEmulator:
         if transport not in ("pty", "tcp"):
             raise ValueError(f"unknown transport {transport!r}")
         self._devices = [
-            _Device(spec, [_Axis(i + 1, a) for i, a in enumerate(spec.axes)], checksum, alert)
+            EmulatedDevice(
+                spec, [EmulatedAxis(i + 1, a) for i, a in enumerate(spec.axes)], checksum, alert
+            )
             for spec in sorted(specs, key=lambda s: s.address)
         ]
         self._transport: Transport = transport
@@ -568,10 +188,10 @@ class ZaberEmulator:
         self._lock = threading.RLock()
         self._events: list[_Event] = []
         self._seq = itertools.count()
-        self._reply_faults: list[_ReplyFault] = []
+        self._reply_faults: list[ReplyFault] = []
         self._inbuf = bytearray()
         self._command_text = ""  # text of the command being answered (for reply faults)
-        self._link: _PtyLink | _TcpLink | None = None
+        self._link: PtyLink | TcpLink | None = None
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
         self._wake_r, self._wake_w = -1, -1
@@ -587,7 +207,7 @@ class ZaberEmulator:
         with self._lock:
             if self._thread is not None:
                 return self
-            self._link = _PtyLink() if self._transport == "pty" else _TcpLink(self._tcp_port)
+            self._link = PtyLink() if self._transport == "pty" else TcpLink(self._tcp_port)
             self._wake_r, self._wake_w = os.pipe()
             os.set_blocking(self._wake_r, False)
             self._stopping.clear()
@@ -636,7 +256,7 @@ class ZaberEmulator:
     def bound_address(self) -> tuple[str, int] | None:
         """(host, port) the TCP server listens on; None for a pty."""
         link = self._link
-        if isinstance(link, _TcpLink):
+        if isinstance(link, TcpLink):
             host, port = link.listener.getsockname()[:2]
             return str(host), int(port)
         return None
@@ -693,13 +313,13 @@ class ZaberEmulator:
         ``device`` / ``command`` restrict the fault to one device / to commands
         starting with ``command`` (e.g. ``"move abs"``), for this and the methods below.
         """
-        self._add_reply_fault(_ReplyFault("drop", count, device, command=command))
+        self._add_reply_fault(ReplyFault("drop", count, device, command=command))
 
     def garble_replies(
         self, count: int | None = 1, *, device: int | None = None, command: str | None = None
     ) -> None:
         """Corrupt one byte in each of the next ``count`` replies (None = all)."""
-        self._add_reply_fault(_ReplyFault("garble", count, device, command=command))
+        self._add_reply_fault(ReplyFault("garble", count, device, command=command))
 
     def delay_replies(
         self,
@@ -710,7 +330,7 @@ class ZaberEmulator:
         command: str | None = None,
     ) -> None:
         """Send each of the next ``count`` replies ``delay_s`` real seconds late."""
-        self._add_reply_fault(_ReplyFault("delay", count, device, delay_s, command))
+        self._add_reply_fault(ReplyFault("delay", count, device, delay_s, command))
 
     def clear_faults(self) -> None:
         """Remove pending reply faults and pending move faults; revive dead devices."""
@@ -728,11 +348,11 @@ class ZaberEmulator:
 
     def stick_next_move(self, device: int, axis: int) -> None:
         """The next move goes part of the way and then stays BUSY until stop/estop."""
-        self._set_move_fault(device, axis, _MoveFault("stuck", 0.3))
+        self._set_move_fault(device, axis, MoveFault("stuck", 0.3))
 
     def stall_next_move(self, device: int, axis: int, at_fraction: float = 0.5) -> None:
         """The next move stalls at ``at_fraction`` of its distance and raises FS."""
-        self._set_move_fault(device, axis, _MoveFault("stall", at_fraction, "FS"))
+        self._set_move_fault(device, axis, MoveFault("stall", at_fraction, "FS"))
 
     def limit_on_next_move(
         self, device: int, axis: int, at_fraction: float = 0.5, *, flag: str = "WL"
@@ -740,21 +360,21 @@ class ZaberEmulator:
         """The next move is stopped by a limit sensor at ``at_fraction``: WL (or FE)."""
         if flag not in ("WL", "FE"):
             raise ValueError("flag must be WL or FE")
-        self._set_move_fault(device, axis, _MoveFault("limit", at_fraction, flag))
+        self._set_move_fault(device, axis, MoveFault("limit", at_fraction, flag))
 
     def drift_next_move(self, device: int, axis: int, microsteps: int) -> None:
         """The next move ends ``microsteps`` away from its target, with no flag."""
-        self._set_move_fault(device, axis, _MoveFault("drift", 1.0, drift=microsteps))
+        self._set_move_fault(device, axis, MoveFault("drift", 1.0, drift=microsteps))
 
     def disconnect_on_next_move(self, device: int, axis: int, at_fraction: float = 0.5) -> None:
         """The line drops when the next move reaches ``at_fraction`` of its duration."""
-        self._set_move_fault(device, axis, _MoveFault("disconnect", at_fraction))
+        self._set_move_fault(device, axis, MoveFault("disconnect", at_fraction))
 
     def power_cycle_on_next_move(
         self, device: int, axis: int, at_fraction: float = 0.5, *, off_s: float = 0.1
     ) -> None:
         """The device loses power at ``at_fraction`` of the next move (off ``off_s`` s)."""
-        self._set_move_fault(device, axis, _MoveFault("power", at_fraction, off_s=off_s))
+        self._set_move_fault(device, axis, MoveFault("power", at_fraction, off_s=off_s))
 
     def set_flags(self, device: int, axis: int, *flags: str) -> None:
         """Raise warning flags on an axis directly (e.g. ``"WT"`` temperature, ``"WV"`` voltage)."""
@@ -784,23 +404,23 @@ class ZaberEmulator:
     def _real_time(self, scaled: float) -> float:
         return self._t0 + scaled / self.speedup
 
-    def _device(self, address: int) -> _Device:
+    def _device(self, address: int) -> EmulatedDevice:
         for dev in self._devices:
             if dev.address == address:
                 return dev
         raise KeyError(f"no emulated device {address}")
 
-    def _axis(self, device: int, axis: int) -> _Axis:
+    def _axis(self, device: int, axis: int) -> EmulatedAxis:
         dev = self._device(device)
         if not 1 <= axis <= len(dev.axes):
             raise KeyError(f"device {device} has no axis {axis}")
         return dev.axes[axis - 1]
 
-    def _add_reply_fault(self, fault: _ReplyFault) -> None:
+    def _add_reply_fault(self, fault: ReplyFault) -> None:
         with self._lock:
             self._reply_faults.append(fault)
 
-    def _set_move_fault(self, device: int, axis: int, fault: _MoveFault) -> None:
+    def _set_move_fault(self, device: int, axis: int, fault: MoveFault) -> None:
         if not 0.0 <= fault.fraction <= 1.0:
             raise ValueError("at_fraction must be within 0..1")
         with self._lock:
@@ -817,7 +437,7 @@ class ZaberEmulator:
         heapq.heappush(self._events, _Event(real_when, next(self._seq), action))
         self._wake()
 
-    def _power_cycle(self, dev: _Device, off_s: float) -> None:
+    def _power_cycle(self, dev: EmulatedDevice, off_s: float) -> None:
         now = self._now()
         for ax in dev.axes:
             ax.power_loss(now)
@@ -900,7 +520,7 @@ class ZaberEmulator:
         for dev in self._targets(command.device):
             self._execute(dev, command)
 
-    def _targets(self, address: int) -> list[_Device]:
+    def _targets(self, address: int) -> list[EmulatedDevice]:
         now = time.monotonic()
         return [
             dev
@@ -912,7 +532,7 @@ class ZaberEmulator:
 
     def _reply(
         self,
-        dev: _Device,
+        dev: EmulatedDevice,
         axis: int,
         message_id: int | None,
         *,
@@ -941,7 +561,7 @@ class ZaberEmulator:
         )
         self._deliver(dev, line)
 
-    def _deliver(self, dev: _Device, line: bytes) -> None:
+    def _deliver(self, dev: EmulatedDevice, line: bytes) -> None:
         self.stats.replies += 1
         fault = next(
             (
@@ -974,12 +594,12 @@ class ZaberEmulator:
                 return
         self._send(line)
 
-    def _settle(self, dev: _Device, ax: _Axis, now: float) -> None:
+    def _settle(self, dev: EmulatedDevice, ax: EmulatedAxis, now: float) -> None:
         """Finish ``ax``'s motion if its time is over, with the alert it triggers."""
         if ax.settle(now):
             self._alert(dev, ax)
 
-    def _alert(self, dev: _Device, ax: _Axis) -> None:
+    def _alert(self, dev: EmulatedDevice, ax: EmulatedAxis) -> None:
         if dev.alert and not dev.dead and dev.off_until <= time.monotonic():
             self.stats.alerts += 1
             now = self._now()
@@ -995,7 +615,7 @@ class ZaberEmulator:
 
     # ------------------------------------------------------------------ commands
 
-    def _execute(self, dev: _Device, cmd: protocol.Command) -> None:
+    def _execute(self, dev: EmulatedDevice, cmd: protocol.Command) -> None:
         self._command_text = cmd.text
         mid = cmd.message_id
         if cmd.axis > len(dev.axes):
@@ -1034,12 +654,12 @@ class ZaberEmulator:
             post()
 
     def _cmd_status(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         return "0"
 
     def _cmd_home(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if args:
             return "RJ BADDATA"
@@ -1048,7 +668,7 @@ class ZaberEmulator:
         return "0"
 
     def _cmd_move(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if not args or args[0] not in ("abs", "rel", "min", "max"):
             return "RJ BADCOMMAND"
@@ -1072,7 +692,7 @@ class ZaberEmulator:
             return "RJ BADDATA"
         else:
             value = 0
-        targets: list[tuple[_Axis, int]] = []
+        targets: list[tuple[EmulatedAxis, int]] = []
         for ax in axes:
             current = ax.reported(now)
             target = {
@@ -1097,7 +717,7 @@ class ZaberEmulator:
         return "0"
 
     def _cmd_stop(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if args:
             return "RJ BADDATA"
@@ -1110,12 +730,12 @@ class ZaberEmulator:
                 continue
             pos, vel = ax.phys_at(now), ax.motion.profile.velocity(now)
             ax.phys = pos
-            ax.motion = _Motion(_Decel(now, pos, vel, ax.acceleration), "stop")
+            ax.motion = Motion(DecelerationProfile(now, pos, vel, ax.acceleration), "stop")
             self._schedule_settle(dev, ax, ax.motion)
         return "0"
 
     def _cmd_estop(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if args:
             return "RJ BADDATA"
@@ -1126,7 +746,7 @@ class ZaberEmulator:
         return "0"
 
     def _cmd_get(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if len(args) != 1:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
@@ -1150,7 +770,7 @@ class ZaberEmulator:
 
     @staticmethod
     def _get_axis_setting(
-        ax: _Axis, name: str, now: float, dev: _Device | None = None
+        ax: EmulatedAxis, name: str, now: float, dev: EmulatedDevice | None = None
     ) -> int | None:
         return {
             "pos": ax.reported(now),
@@ -1162,7 +782,7 @@ class ZaberEmulator:
         }.get(name)
 
     def _cmd_set(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if len(args) != 2:
             return "RJ BADCOMMAND" if not args else "RJ BADDATA"
@@ -1203,7 +823,7 @@ class ZaberEmulator:
         return "0"
 
     def _cmd_warnings(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str:
         if args not in ([], ["clear"]):
             return "RJ BADDATA"
@@ -1217,7 +837,7 @@ class ZaberEmulator:
         return " ".join([f"{len(ordered):02d}", *ordered])
 
     def _cmd_system(
-        self, dev: _Device, axis: int, axes: list[_Axis], args: list[str], now: float
+        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
     ) -> str | tuple[str, Callable[[], None]]:
         if args != ["reset"]:
             return "RJ BADCOMMAND"
@@ -1229,8 +849,8 @@ class ZaberEmulator:
 
     def _start_motion(
         self,
-        dev: _Device,
-        ax: _Axis,
+        dev: EmulatedDevice,
+        ax: EmulatedAxis,
         *,
         target_phys: float,
         kind: Literal["move", "home"],
@@ -1262,12 +882,12 @@ class ZaberEmulator:
                 end = target_phys + fault.drift
         if kind == "move" and ax.offset != 0.0:
             end = min(max(end, 0.0), float(ax.spec.limit_max))  # physical end stops
-        profile = _Trapezoid(now, start, end, velocity, acceleration)
-        motion = _Motion(profile, kind, end_flags, stuck_after)
+        profile = TrapezoidProfile(now, start, end, velocity, acceleration)
+        motion = Motion(profile, kind, end_flags, stuck_after)
         ax.motion = motion
         self._schedule_settle(dev, ax, motion)
         if fault is not None and fault.kind in ("disconnect", "power"):
-            full = _Trapezoid(now, start, target_phys, velocity, acceleration)
+            full = TrapezoidProfile(now, start, target_phys, velocity, acceleration)
             at = self._real_time(now + fault.fraction * (full.end_time - now))
             if fault.kind == "disconnect":
                 self._schedule(at, self._fault_disconnect)
@@ -1279,7 +899,7 @@ class ZaberEmulator:
         if self._link is not None:
             self._link.disconnect()
 
-    def _schedule_settle(self, dev: _Device, ax: _Axis, motion: _Motion) -> None:
+    def _schedule_settle(self, dev: EmulatedDevice, ax: EmulatedAxis, motion: Motion) -> None:
         def settle() -> None:
             if ax.motion is motion:
                 self._settle(dev, ax, self._now())
