@@ -55,17 +55,27 @@ import dataclasses
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from calibration.archive import frame_file_name, read_image, read_manifest
-from drivers.errors import DeviceError
-from station.analysis import AnalysisPool, summary_from_dict
+from station.analysis import AnalysisPool
 from station.archive_source import ArchiveReader
 from station.config import StationConfig
-from station.events import EventHub, JobEvent, LiveProgress, Subscription, analysis_payload
+from station.device_holder import DeviceHolder
+from station.events import EventHub, JobEvent, LiveProgress, Subscription
 from station.job_cache import JobRecordCache
+from station.job_records import (
+    FrameNotFound,
+    JobStatus,
+    ResultNotReady,
+    archive_dir_of,
+    frame_path_of,
+    read_frame_of,
+    replay_events,
+    result_of,
+    status_of,
+)
 from station.ownership import ForeignJob, Ownership, StationBusy, claim_station, open_store
 from station.recovery import VerifyReport, reconcile
 from station.runner import JobControl, Outcome, RunContext, StepTiming, SweepRun
@@ -89,97 +99,11 @@ FINAL_STATES = frozenset(
 """States in which a job is not (or no longer) being worked on."""
 
 
-REOPEN_INTERVAL_S = 5.0
-"""Closed devices (after a fault) are tried again at most this often by :meth:`Orchestrator.devices_info`."""
-
-
-class ResultNotReady(RuntimeError):
-    """The job has no calibration result (yet): the web layer answers 409.
-
-    Attributes:
-        job_id: the job.
-        state: its state.
-    """
-
-    def __init__(self, job_id: int, state: JobState, why: str) -> None:
-        self.job_id = job_id
-        self.state = state
-        super().__init__(f"job {job_id} is {state.value}: {why}")
-
-
-class FrameNotFound(KeyError):
-    """The job has no recorded frame with this index (the web layer answers 404)."""
-
-    def __init__(self, job_id: int, index: int) -> None:
-        self.job_id = job_id
-        self.index = index
-        super().__init__(f"job {job_id} has no recorded frame {index}")
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
-@dataclass(frozen=True)
-class JobStatus:
-    """What a client sees of a job (JSON-ready through :meth:`to_dict`).
-
-    Attributes:
-        id, state, created_at, updated_at, archive_dir, last_error: from the store.
-        request: the validated sweep (:class:`station.sweep.SweepPlan` as a dict).
-        frames_done: frames written and recorded.
-        frames_total: frames of the sweep.
-        frames_analysed: frames analysed (active job only; else None).
-        phase: what the active job is doing (``preparing``, ``homing``, ``white``,
-            ``aligning``, ``sweeping``, ``paused``, ``calibrating``), else None.
-        rail_mm: last read-back rail position of the active job (mm), else None.
-        eta_s: seconds until the last frame (active job), else None.
-        pause_requested, cancel_requested: a request waiting for the next step boundary.
-        has_result: a calibration result (or a failed calibration's partial result) is stored.
-        recent_fault: the last fault the active job recovered from, else None.
-        station_id, camera_serial, archive_url: from the store (see
-            :class:`station.store.JobRecord`).
-    """
-
-    id: int
-    state: JobState
-    created_at: float
-    updated_at: float
-    request: dict[str, Any]
-    archive_dir: str
-    frames_done: int
-    frames_total: int
-    last_error: str | None
-    has_result: bool
-    frames_analysed: int | None = None
-    phase: str | None = None
-    rail_mm: float | None = None
-    eta_s: float | None = None
-    pause_requested: bool = False
-    cancel_requested: bool = False
-    recent_fault: str | None = None
-    station_id: str = ""
-    camera_serial: str | None = None
-    archive_url: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (``state`` as its string)."""
-        out = dict(self.__dict__)
-        out["state"] = self.state.value
-        return out
-
-
 @dataclass
 class _Active:
     job_id: int
     control: JobControl
     progress: LiveProgress
-
-
-@dataclass
-class _DevicesState:
-    devices: Any | None = None
-    error: str | None = None
-    described: dict[str, Any] = field(default_factory=dict)
 
 
 class Orchestrator:
@@ -224,7 +148,7 @@ class Orchestrator:
 
                 return open_devices(config, emulator_speedup=emulator_speedup)
 
-        self._factory = devices_factory
+        self._hardware = DeviceHolder(devices_factory)
         self._pool = AnalysisPool(analysis_workers) if analysis_workers != 0 else None
         self._run_queued = run_queued
         self._open_at_start = open_devices_at_start
@@ -234,10 +158,6 @@ class Orchestrator:
         self._queue: collections.deque[int] = collections.deque()
         self._active: _Active | None = None
         self._progress_lock = threading.Lock()
-        self._hw_lock = threading.Lock()
-        self._devices = _DevicesState()
-        self._devices_tried = threading.Event()
-        self._last_open = 0.0
         self._timings: dict[int, list[StepTiming]] = {}
         self._jobs = JobRecordCache()
         self._stopping = False
@@ -245,8 +165,6 @@ class Orchestrator:
         self._ownership: Ownership | None = None
         self._held_for_ownership = False  # queued jobs held while the ownership is lost
         self._pp_cache: dict[str, tuple[float, float]] = {}
-        self._exposure_limits: tuple[float, float] | None = None
-        self._rail_limits: tuple[float, float] | None = None
         #: Start-up verification of the jobs found running or paused (job id -> report).
         self.recovery_reports: dict[int, VerifyReport] = {}
         #: Final states the store refused to record (job id -> state and reason).
@@ -321,7 +239,7 @@ class Orchestrator:
         self._flush_unrecorded()
         if self._pool is not None:
             self._pool.close()
-        self._close_devices()
+        self._hardware.close()
         if self._uploader is not None:
             self._uploader.stop()
             self._uploader = None
@@ -388,7 +306,7 @@ class Orchestrator:
 
     def wait_ready(self, timeout_s: float = 60.0) -> bool:
         """Wait until the first attempt to open the devices has ended (True) or ``timeout_s``."""
-        return self._devices_tried.wait(timeout_s)
+        return self._hardware.tried.wait(timeout_s)
 
     def validate(self, request: SweepRequest | Mapping[str, Any] | None) -> SweepPlan:
         """Check a request without submitting it (raises :class:`station.sweep.RequestInvalid`).
@@ -398,12 +316,12 @@ class Orchestrator:
         otherwise against the configuration, and again when the job starts.
         """
         if self._open_at_start and self._thread is not None:
-            self._devices_tried.wait(10.0)
+            self._hardware.tried.wait(10.0)
         return plan_sweep(
             dict(request) if isinstance(request, Mapping) else request,
             self.config,
-            rail_limits_mm=self._rail_limits,
-            exposure_limits_us=self._exposure_limits,
+            rail_limits_mm=self._hardware.rail_limits_mm,
+            exposure_limits_us=self._hardware.exposure_limits_us,
         )
 
     def submit(
@@ -433,7 +351,7 @@ class Orchestrator:
                 archive_root=self.data_dir,
                 frames_total=plan.frames,
                 idempotency_key=idempotency_key,
-                camera_serial=self._devices.described.get("camera", {}).get("serial"),
+                camera_serial=self._hardware.camera_serial,
             )
             self._jobs.put(job)
             if created:
@@ -531,10 +449,10 @@ class Orchestrator:
             active = None
         if active is None or job.state not in ACTIVE_STATES:
             steps = self._jobs.step_count(job, lambda: self.store.step_count(job_id))
-            return self._status_of(job, steps)
+            return status_of(job, steps)
         with self._progress_lock:
             p = active.progress
-            return self._status_of(
+            return status_of(
                 job,
                 p.frames_done,
                 frames_analysed=p.frames_analysed,
@@ -545,25 +463,6 @@ class Orchestrator:
                 cancel_requested=p.cancel_requested,
                 recent_fault=p.last_error,
             )
-
-    @staticmethod
-    def _status_of(job: JobRecord, frames_done: int, **live: Any) -> JobStatus:
-        return JobStatus(
-            id=job.id,
-            state=job.state,
-            created_at=job.created_at,
-            updated_at=job.updated_at,
-            request=job.request,
-            archive_dir=str(job.archive_dir),
-            frames_done=frames_done,
-            frames_total=job.frames_total,
-            last_error=job.last_error,
-            has_result=job.has_result,
-            station_id=job.station_id,
-            camera_serial=job.camera_serial,
-            archive_url=job.archive_url,
-            **live,
-        )
 
     def jobs(self, states: Iterable[JobState] | None = None) -> list[JobStatus]:
         """Every job (oldest first), optionally only those in ``states``."""
@@ -585,52 +484,21 @@ class Orchestrator:
         return self.store.steps(job_id)
 
     def result(self, job_id: int) -> dict[str, Any]:
-        """The calibration result (JSON object) of a succeeded job.
-
-        Raises :class:`ResultNotReady` (409) while the job runs, or when it ended
-        without a result (its ``last_error`` says why; a failed calibration's
-        partial result is in :meth:`record`).
-        """
-        job = self._record(job_id, with_result=True)
-        if job.state is JobState.SUCCEEDED and job.result is not None:
-            return job.result
-        if job.state is JobState.SUCCEEDED:
-            raise ResultNotReady(
-                job_id, job.state, "the job only acquired frames (calibrate false)"
-            )
-        if job.state in (JobState.QUEUED, JobState.RUNNING, JobState.PAUSED):
-            raise ResultNotReady(job_id, job.state, "the calibration is not finished")
-        why = job.last_error
-        if why is None:
-            changes = self.store.transitions(job_id)
-            why = changes[-1].reason if changes else "no result"
-        raise ResultNotReady(job_id, job.state, why)
+        """The calibration result (JSON object) of a succeeded job (:func:`station.job_records.result_of`:
+        :class:`ResultNotReady` while it runs or when it ended without one)."""
+        return result_of(self._record(job_id, with_result=True), self.store)
 
     def archive_dir(self, job_id: int) -> Path:
-        """The job's ``lfcal-sweep/1`` directory (it may not exist before the job starts):
-        the local one, else a copy fetched from object storage (:mod:`station.archive_source`)."""
-        job = self.store.get_job(job_id)
-        return self._archives.local_dir(job.archive_dir, job.archive_url)
+        """The job's ``lfcal-sweep/1`` directory, local or fetched from object storage."""
+        return archive_dir_of(self.store, self._archives, job_id)
 
     def frame_path(self, job_id: int, index: int) -> Path:
         """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
-        step = self.store.step(job_id, index)
-        if step is None:
-            self.store.get_job(job_id)  # JobNotFound first
-            raise FrameNotFound(job_id, index)
-        return self.archive_dir(job_id) / (step.file or frame_file_name(index))
+        return frame_path_of(self.store, self._archives, job_id, index)
 
     def read_frame(self, job_id: int, index: int) -> Any:
-        """A recorded frame as counts (``uint16``, ``(height, width)``), e.g. for a preview.
-
-        Raises :class:`FrameNotFound`, or a :class:`calibration.archive.ImageError`
-        if the file is damaged.
-        """
-        path = self.frame_path(job_id, index)
-        manifest = read_manifest(self.archive_dir(job_id))
-        return read_image(
-            path, expected_shape=manifest.camera.shape, bit_depth=manifest.camera.bit_depth
-        )
+        """A recorded frame as counts (:func:`station.job_records.read_frame_of`)."""
+        return read_frame_of(self.store, self._archives, job_id, index)
 
     def step_timings(self, job_id: int) -> list[StepTiming]:
         """Hardware-thread timings of the steps this process ran for the job."""
@@ -651,52 +519,14 @@ class Orchestrator:
         self.hub.remove_callback(callback)
 
     def replay(self, job_id: int, after: int | None = None) -> list[JobEvent]:
-        """``step`` events of the recorded steps with index > ``after`` (from the store,
-        so they survive restarts), each with the frame's analysis ``summary`` when
-        known, then one ``state`` event with the job's current state.
-
-        SSE recipe: subscribe first, then replay from Last-Event-ID, then forward
-        live events, skipping ``step`` events whose id was already replayed.
-        """
-        job = self._record(job_id)
-        events = []
-        total = job.frames_total
-        steps = self.store.steps(job_id)
-        done = 0
-        for step in steps:
-            done += 1
-            if after is not None and step.index <= after:
-                continue
-            data: dict[str, Any] = {
-                "index": step.index,
-                "commanded_mm": step.commanded_mm,
-                "actual_mm": step.actual_mm,
-                "file": step.file,
-                "sha256": step.sha256,
-                "frames_done": done,
-                "frames_total": total,
-                "replayed": True,
-            }
-            if step.summary is not None:
-                data["summary"] = analysis_payload(
-                    summary_from_dict(step.summary), self.config.board.reference_gap_mm
-                )
-            events.append(JobEvent(job_id, "step", step.index, data, at=step.written_at))
-        events.append(
-            JobEvent(
-                job_id,
-                "state",
-                None,
-                {
-                    "state": job.state.value,
-                    "from": None,
-                    "reason": "current state",
-                    "last_error": job.last_error,
-                },
-                at=job.updated_at,
-            )
+        """The job's recorded steps after ``after`` and its current state as events
+        (:func:`station.job_records.replay_events`; the SSE recipe is there)."""
+        return replay_events(
+            self.store,
+            self._record(job_id),
+            after,
+            reference_gap_mm=self.config.board.reference_gap_mm,
         )
-        return events
 
     def wait_for(self, job_id: int, states: Iterable[JobState], timeout_s: float) -> JobStatus:
         """Block until the job is in one of ``states``; ``TimeoutError`` after ``timeout_s``."""
@@ -742,7 +572,7 @@ class Orchestrator:
     @property
     def devices(self) -> Any | None:
         """The open ``StationDevices`` (None when not open). Use only while no job runs."""
-        return self._devices.devices
+        return self._hardware.devices
 
     def devices_info(self) -> dict[str, Any]:
         """Connection, identity, position and homed state of every device (JSON-ready).
@@ -750,61 +580,17 @@ class Orchestrator:
         While a job runs the devices belong to the hardware worker: the last
         description is returned with ``busy: true`` and the live rail position.
         """
-        state = self._devices
-        if not self._hw_lock.acquire(blocking=False):
-            with self._lock:
-                active = self._active
-            out = dict(state.described)
-            out.update(connected=state.devices is not None, busy=True)
-            if active is not None:
-                with self._progress_lock:
-                    out["active_job"] = active.job_id
-                    out["rail_mm"] = active.progress.rail_mm
-            return out
-        try:
-            if state.devices is None and time.monotonic() - self._last_open >= REOPEN_INTERVAL_S:
-                try:  # closed after a fault: are they back?
-                    self._ensure_devices()
-                except Exception:  # noqa: BLE001 - reported below
-                    pass
-            if state.devices is None:
-                return {"connected": False, "busy": False, "error": state.error}
-            try:
-                state.described = state.devices.describe()
-            except DeviceError as exc:
-                return {"connected": True, "busy": False, "error": str(exc)}
-            return dict(state.described, connected=True, busy=False)
-        finally:
-            self._hw_lock.release()
-
-    def _ensure_devices(self) -> Any:
-        """Open the devices if they are not (hardware thread only)."""
-        state = self._devices
-        if state.devices is None:
-            self._last_open = time.monotonic()
-            try:
-                state.devices = self._factory()
-                state.error = None
-            except (DeviceError, OSError, ValueError) as exc:
-                state.error = str(exc)
-                raise
-            try:
-                state.described = state.devices.describe()
-                lim = state.devices.rail.limits_mm()
-                self._rail_limits = (lim.min_mm, lim.max_mm)
-                self._exposure_limits = state.devices.camera.exposure_limits_us()
-            except DeviceError:
-                pass
-        return state.devices
-
-    def _close_devices(self) -> None:
-        state = self._devices
-        devices, state.devices = state.devices, None
-        if devices is not None:
-            try:
-                devices.close()
-            except Exception:  # noqa: BLE001 - closing is best effort
-                pass
+        idle = self._hardware.describe_if_idle()
+        if idle is not None:
+            return idle
+        with self._lock:
+            active = self._active
+        out = self._hardware.describe_busy()
+        if active is not None:
+            with self._progress_lock:
+                out["active_job"] = active.job_id
+                out["rail_mm"] = active.progress.rail_mm
+        return out
 
     # ------------------------------------------------------------------ the worker
 
@@ -1048,12 +834,12 @@ class Orchestrator:
     def _worker(self) -> None:
         """The hardware worker: supervised, it only returns when the station stops."""
         if self._open_at_start:
-            with self._hw_lock:
+            with self._hardware.hw_lock:
                 try:
-                    self._ensure_devices()
+                    self._hardware.ensure()
                 except Exception:  # noqa: BLE001 - reported by devices_info and the first job
                     pass
-        self._devices_tried.set()
+        self._hardware.tried.set()
         while True:
             try:
                 if not self._serve_one():
@@ -1070,16 +856,16 @@ class Orchestrator:
         if job is None:
             return False
         try:
-            with self._hw_lock:
+            with self._hardware.hw_lock:
                 outcome = self._run(job)
         except Exception as exc:  # noqa: BLE001 - SweepRun.execute catches; this is a bug
             message = f"internal error: {type(exc).__name__}: {exc}"
             outcome = Outcome(JobState.FAILED, message, last_error=message)
         self._finish(job.id, outcome)
         if outcome.devices_broken:
-            with self._hw_lock:  # learn at once whether the devices can be reopened
+            with self._hardware.hw_lock:  # learn at once whether the devices can be reopened
                 try:
-                    self._ensure_devices()
+                    self._hardware.ensure()
                 except Exception:  # noqa: BLE001 - reported by devices_info
                     pass
         return True
@@ -1088,11 +874,11 @@ class Orchestrator:
         assert self._active is not None
         active = self._active
         try:
-            devices = self._ensure_devices()
+            devices = self._hardware.ensure()
         except Exception as exc:  # noqa: BLE001
             msg = f"the devices cannot be opened: {exc}"
             return Outcome(JobState.FAILED, msg, last_error=msg)
-        serial = self._devices.described.get("camera", {}).get("serial")
+        serial = self._hardware.camera_serial
         if serial and serial != job.camera_serial:
             try:
                 self.store.set_camera_serial(job.id, str(serial))
@@ -1122,7 +908,7 @@ class Orchestrator:
     def _finish(self, job_id: int, outcome: Outcome) -> None:
         """Store the run's final state; if the store refuses, keep it in memory."""
         if outcome.devices_broken:
-            self._close_devices()
+            self._hardware.close()
         kwargs: dict[str, Any] = {}
         if outcome.last_error is not None:
             kwargs["last_error"] = outcome.last_error
