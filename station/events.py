@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from calibration.pipeline import FrameSummary
+from station.store import StepRecord
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,20 @@ def analysis_payload(summary: FrameSummary, reference_gap_mm: float) -> dict[str
         "edge_width_px": _num(summary.edge_width_px),
         "edge_spread_px": _num(summary.edge_spread_px),
         "error": summary.error or None,
+    }
+
+
+def step_data(step: StepRecord, frames_done: int, frames_total: int) -> dict[str, Any]:
+    """The data of a ``step`` event: the recorded step (rail positions in mm, the frame's
+    file and SHA-256) and the job's frame count so far."""
+    return {
+        "index": step.index,
+        "commanded_mm": step.commanded_mm,
+        "actual_mm": step.actual_mm,
+        "file": step.file,
+        "sha256": step.sha256,
+        "frames_done": frames_done,
+        "frames_total": frames_total,
     }
 
 

@@ -15,7 +15,7 @@ from typing import Any
 from calibration.archive import frame_file_name, read_image, read_manifest
 from station.analysis import summary_from_dict
 from station.archive_source import ArchiveReader
-from station.events import JobEvent, analysis_payload
+from station.events import JobEvent, analysis_payload, step_data
 from station.store import JobRecord, JobState, JobStore
 
 
@@ -180,16 +180,7 @@ def replay_events(
         done += 1
         if after is not None and step.index <= after:
             continue
-        data: dict[str, Any] = {
-            "index": step.index,
-            "commanded_mm": step.commanded_mm,
-            "actual_mm": step.actual_mm,
-            "file": step.file,
-            "sha256": step.sha256,
-            "frames_done": done,
-            "frames_total": total,
-            "replayed": True,
-        }
+        data = {**step_data(step, done, total), "replayed": True}
         if step.summary is not None:
             data["summary"] = analysis_payload(summary_from_dict(step.summary), reference_gap_mm)
         events.append(JobEvent(job.id, "step", step.index, data, at=step.written_at))

@@ -53,7 +53,7 @@ from drivers.camera import CameraSettings, Roi, bit_depth
 from drivers.errors import ConnectionLost, DeviceError, PortUnavailable
 from station.analysis import AnalysisPool, AnalysisSession, summary_from_dict
 from station.config import StationConfig
-from station.events import JobEvent, LiveProgress, analysis_payload
+from station.events import JobEvent, LiveProgress, analysis_payload, step_data
 from station.faults import Action, check_frame, rule_for
 from station.recovery import VerifyReport, reconcile
 from station.store import JobRecord, JobState, JobStore, StepRecord, StoreUnavailable
@@ -631,16 +631,7 @@ class SweepRun:
                 self.job.id,
                 "step",
                 step.index,
-                {
-                    "index": step.index,
-                    "commanded_mm": step.commanded_mm,
-                    "actual_mm": step.actual_mm,
-                    "file": step.file,
-                    "sha256": step.sha256,
-                    "frames_done": done,
-                    "frames_total": total,
-                    "eta_s": eta,
-                },
+                {**step_data(step, done, total), "eta_s": eta},
             )
         )
 
