@@ -63,7 +63,7 @@ class DeviceSpec:
         device_id: product id (``deviceid`` / ``device.id``).
         serial: ``system.serial``.
         firmware: 6 or 7: the setting names and commands of that firmware series
-            (see :data:`FIRMWARE_SETTING_NAMES`).
+            (see :data:`drivers.sim.zaber_settings.FIRMWARE_SETTING_NAMES`).
         version: ``get version`` answer; default ``"6.32"`` or ``"7.38"`` by firmware.
         peripheral_id: per-axis ``peripheralid`` / ``peripheral.id``.
     """

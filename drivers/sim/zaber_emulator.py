@@ -71,43 +71,17 @@ from drivers.sim.zaber_axes import (
     ReplyFault,
     TrapezoidProfile,
 )
+from drivers.sim.zaber_settings import (
+    MOVE_SPEED_ARGS_SINCE,
+    axis_setting,
+    get_setting,
+    is_int,
+    set_setting,
+    warning_flags,
+)
 from drivers.zaber import protocol
 
 # --------------------------------------------------------------------------- emulator
-
-#: Settings whose name differs between the firmware series: (firmware 6, firmware 7).
-#: Firmware 7 renamed the identity settings (Zaber's FW7 protocol manual); a device of
-#: either series rejects the other series' name with ``RJ BADCOMMAND``.
-FIRMWARE_SETTING_NAMES: dict[str, tuple[str, str]] = {
-    "device_id": ("deviceid", "device.id"),
-    "peripheral_id": ("peripheralid", "peripheral.id"),
-}
-#: ``move abs``/``move rel`` take optional speed and acceleration arguments from 7.25 on.
-MOVE_SPEED_ARGS_SINCE = (7, 25)
-
-_DEVICE_SETTINGS = (
-    "device_id",
-    "system.serial",
-    "version",
-    "comm.checksum",
-    "comm.alert",
-    "system.axiscount",
-)
-_AXIS_SETTINGS = ("pos", "maxspeed", "accel", "limit.min", "limit.max", "peripheral_id")
-_READ_ONLY = frozenset(
-    {"device_id", "system.serial", "version", "system.axiscount", "peripheral_id"}
-)
-
-
-def _canonical_setting(name: str, firmware: int) -> str | None:
-    """The internal key of a setting name as a device of ``firmware`` knows it (None:
-    unknown to that firmware, e.g. ``device.id`` on firmware 6)."""
-    for key, names in FIRMWARE_SETTING_NAMES.items():
-        if name in names:
-            return key if names[0 if firmware == 6 else 1] == name else None
-        if name == key:
-            return None
-    return name
 
 
 @dataclass(frozen=True)
@@ -299,7 +273,7 @@ class ZaberEmulator:
         """Current value of an axis setting (pos, maxspeed, accel, limit.min, limit.max)."""
         with self._lock:
             ax = self._axis(device, axis)
-            value = self._get_axis_setting(ax, name, self._now())
+            value = axis_setting(ax, name, self._now())
             assert value is not None
             return value
 
@@ -634,9 +608,9 @@ class ZaberEmulator:
             "move": self._cmd_move,
             "stop": self._cmd_stop,
             "estop": self._cmd_estop,
-            "get": self._cmd_get,
-            "set": self._cmd_set,
-            "warnings": self._cmd_warnings,
+            "get": get_setting,
+            "set": set_setting,
+            "warnings": warning_flags,
             "system": self._cmd_system,
         }.get(verb)
         if handler is None:
@@ -680,7 +654,7 @@ class ZaberEmulator:
             with_speed = dev.spec.version_number >= MOVE_SPEED_ARGS_SINCE
             if len(rest) not in ((1, 3) if with_speed else (1,)):
                 return "RJ BADDATA"
-            if not all(_is_int(token) for token in rest):
+            if not all(is_int(token) for token in rest):
                 return "RJ BADDATA"
             value = int(rest[0])
             if len(rest) == 3:
@@ -744,97 +718,6 @@ class ZaberEmulator:
                 ax.flags.add("NI")
             ax.halt(now)
         return "0"
-
-    def _cmd_get(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if len(args) != 1:
-            return "RJ BADCOMMAND" if not args else "RJ BADDATA"
-        name = _canonical_setting(args[0], dev.spec.firmware)
-        if name in _DEVICE_SETTINGS:
-            if axis != 0:
-                return "RJ DEVICEONLY"
-            return {
-                "device_id": str(dev.spec.device_id),
-                "system.serial": str(dev.spec.serial),
-                "version": dev.spec.version_text,
-                "comm.checksum": str(int(dev.checksum)),
-                "comm.alert": str(int(dev.alert)),
-                "system.axiscount": str(len(dev.axes)),
-            }[name]
-        if name in _AXIS_SETTINGS:
-            # axis 0: one value per axis, in axis order (the manual's "get" of a device)
-            values = [self._get_axis_setting(ax, name, now, dev) for ax in axes]
-            return " ".join(str(v) for v in values)
-        return "RJ BADCOMMAND"
-
-    @staticmethod
-    def _get_axis_setting(
-        ax: EmulatedAxis, name: str, now: float, dev: EmulatedDevice | None = None
-    ) -> int | None:
-        return {
-            "pos": ax.reported(now),
-            "maxspeed": ax.maxspeed,
-            "accel": ax.accel,
-            "limit.min": ax.limit_min,
-            "limit.max": ax.limit_max,
-            "peripheral_id": dev.spec.peripheral_id if dev is not None else 0,
-        }.get(name)
-
-    def _cmd_set(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if len(args) != 2:
-            return "RJ BADCOMMAND" if not args else "RJ BADDATA"
-        name = _canonical_setting(args[0], dev.spec.firmware)
-        raw = args[1]
-        if name not in _DEVICE_SETTINGS and name not in _AXIS_SETTINGS:
-            return "RJ BADCOMMAND"
-        if name in _READ_ONLY or not _is_int(raw):
-            return "RJ BADDATA"
-        value = int(raw)
-        if name in _DEVICE_SETTINGS:
-            if axis != 0:
-                return "RJ DEVICEONLY"
-            if value not in (0, 1):
-                return "RJ BADDATA"
-            if name == "comm.checksum":
-                dev.checksum = bool(value)  # applies to this very reply, as on a device
-            else:
-                dev.alert = bool(value)
-            return "0"
-        for ax in axes:
-            if name in ("maxspeed", "accel") and value < 1:
-                return "RJ BADDATA"
-            if name == "pos" and (ax.busy(now) or not ax.limit_min <= value <= ax.limit_max):
-                return "RJ BADDATA"
-        for ax in axes:
-            if name == "pos":
-                ax.offset = ax.phys - value
-                ax.flags.discard("WR")
-            elif name == "maxspeed":
-                ax.maxspeed = value
-            elif name == "accel":
-                ax.accel = value
-            elif name == "limit.min":
-                ax.limit_min = value
-            else:
-                ax.limit_max = value
-        return "0"
-
-    def _cmd_warnings(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if args not in ([], ["clear"]):
-            return "RJ BADDATA"
-        flags: set[str] = set()
-        for ax in axes:
-            flags |= ax.flags
-        ordered = [f for f in protocol.WARNING_PRIORITY if f in flags]
-        if args == ["clear"]:
-            for ax in axes:
-                ax.flags -= protocol.CLEARABLE_FLAGS
-        return " ".join([f"{len(ordered):02d}", *ordered])
 
     def _cmd_system(
         self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
@@ -905,10 +788,6 @@ class ZaberEmulator:
                 self._settle(dev, ax, self._now())
 
         self._schedule(self._real_time(motion.profile.end_time) + 1e-4, settle)
-
-
-def _is_int(text: str) -> bool:
-    return text.lstrip("+-").isdigit() and len(text) < 20
 
 
 def _garble(line: bytes, salt: int) -> bytes:
