@@ -1,6 +1,6 @@
 """What a client reads of a job: its status, result, archive, frames and recorded events.
 
-Functions of the job store that take no lock and change nothing (and, for the archive's
+Functions of the job store that take no lock and write nothing to it (and, for the archive's
 files, :class:`station.archive_source.ArchiveReader`); :class:`station.orchestrator.Orchestrator`
 adds the active job's live progress and serves them. Errors the web layer maps: :class:`station.store.JobNotFound` (404),
 :class:`FrameNotFound` (404), :class:`ResultNotReady` (409).
