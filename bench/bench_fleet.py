@@ -10,7 +10,7 @@
   results stored as new versions. The ratio of the throughputs (archives/s) is the
   speed-up; the cluster's start-up is reported on its own line.
 * **Per-step overhead** of a sweep (the station's own work per step: the hardware
-  thread's time minus move, settle and grab; :class:`station.runner.StepTiming`) on
+  thread's time minus move, settle and grab; :class:`station.run_control.StepTiming`) on
   the simulated station (``paper`` preset, 3000×1000 px, ``--steps`` 1 mm steps) with
   SQLite + local disk, then with PostgreSQL + S3 (a throw-away PostgreSQL cluster and
   moto's S3 server on 127.0.0.1, :mod:`bench.fleet_servers`), and how long after the

@@ -17,7 +17,7 @@ calibrated at the end):
 
 Rows: status latency p50 / p99 (target p99 ≤ 50 ms), requests and errors (target
 0; a stream that ends without the final state counts as an error), and the station's own overhead per sweep step (the hardware thread's time
-minus move, settle and grab, :class:`station.runner.StepTiming`) idle and
+minus move, settle and grab, :class:`station.run_control.StepTiming`) idle and
 loaded: "unchanged" is the loaded median within 5 ms of the idle one.
 
 **What the machine was doing.** The latency tail follows the CPU time the server

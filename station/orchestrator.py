@@ -78,7 +78,8 @@ from station.job_records import (
 )
 from station.ownership import ForeignJob, Ownership, StationBusy, claim_station, open_store
 from station.recovery import VerifyReport, reconcile
-from station.runner import JobControl, Outcome, RunContext, StepTiming, SweepRun
+from station.run_control import JobControl, Outcome, RunContext, StepTiming
+from station.runner import SweepRun
 from station.store import (
     ACTIVE_STATES,
     InvalidTransition,
