@@ -141,13 +141,19 @@ def archive_dir_of(store: JobStore, archives: ArchiveReader, job_id: int) -> Pat
     return archives.local_dir(job.archive_dir, job.archive_url)
 
 
-def frame_path_of(store: JobStore, archives: ArchiveReader, job_id: int, index: int) -> Path:
-    """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
+def _frame_file(store: JobStore, job_id: int, index: int) -> str:
+    """The recorded frame's file name in its archive (:class:`FrameNotFound` otherwise)."""
     step = store.step(job_id, index)
     if step is None:
         store.get_job(job_id)  # JobNotFound first
         raise FrameNotFound(job_id, index)
-    return archive_dir_of(store, archives, job_id) / (step.file or frame_file_name(index))
+    return step.file or frame_file_name(index)
+
+
+def frame_path_of(store: JobStore, archives: ArchiveReader, job_id: int, index: int) -> Path:
+    """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
+    name = _frame_file(store, job_id, index)
+    return archive_dir_of(store, archives, job_id) / name
 
 
 def read_frame_of(store: JobStore, archives: ArchiveReader, job_id: int, index: int) -> Any:
@@ -156,10 +162,11 @@ def read_frame_of(store: JobStore, archives: ArchiveReader, job_id: int, index: 
     Raises :class:`FrameNotFound`, or a :class:`calibration.archive.ImageError`
     if the file is damaged.
     """
-    path = frame_path_of(store, archives, job_id, index)
-    manifest = read_manifest(archive_dir_of(store, archives, job_id))
+    name = _frame_file(store, job_id, index)
+    directory = archive_dir_of(store, archives, job_id)
+    manifest = read_manifest(directory)
     return read_image(
-        path, expected_shape=manifest.camera.shape, bit_depth=manifest.camera.bit_depth
+        directory / name, expected_shape=manifest.camera.shape, bit_depth=manifest.camera.bit_depth
     )
 
 

@@ -882,7 +882,7 @@ class Orchestrator:
         serial = self._hardware.camera_serial
         if serial and serial != job.camera_serial:
             try:
-                self.store.set_camera_serial(job.id, str(serial))
+                self.store.set_camera_serial(job.id, serial)
             finally:
                 self._jobs.forget(job.id)  # the row changed: read it again
         timings: list[StepTiming] = []
