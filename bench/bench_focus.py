@@ -15,7 +15,8 @@ rail-zero errors and the worst per-frame p error against their targets (a
 failed calibration, exit 2/3/4, is a row with its message, not a crash); for
 the standard-corner-only sweeps, whether F and the rail zero fell back to
 the data sheet. With ``--repeats N``, each accuracy sweep is rendered N more times with
-other seeds and calibrated with the exact data sheet: the mean error over its seeds (the
+other seeds, the image moved against the pixel grid by a fraction of a pixel each time
+(:func:`bench.focus.configs.repeat_config`), and calibrated with the exact data sheet: the mean error over its seeds (the
 bias), the spread and the RMS error (held against the target) tell a bias from one
 seed's luck. Per renderer, over ``--seeds`` coverage sweeps: the fraction of
 seeds whose error is within 1 and within 3 reported sigma (exact and wrong data

@@ -27,7 +27,16 @@ import pytest
 from bench.bench_focus import Run
 from bench.crosscheck import indsim
 from bench.focus import cache
-from bench.focus.configs import ALL_OFF, EXACT, PriorOffset, SweepConfig, repeat_config
+from bench.focus.configs import (
+    ACCURACY,
+    ALL_OFF,
+    EXACT,
+    PriorOffset,
+    SweepConfig,
+    placement_shift_px,
+    principal_point_px,
+    repeat_config,
+)
 from bench.focus.evaluate import (
     Comparison,
     compare,
@@ -279,7 +288,7 @@ def test_repeat_rows_separate_the_bias_from_the_scatter() -> None:
         comparisons.append(cmp)
     config = repeat_config(TINY, 2)
     assert config.seed == TINY.seed + 2000 and config.priors == (EXACT,)
-    assert config.name == "tiny-standard-s2" and config.args == TINY.args
+    assert config.name == "tiny-standard-s2" and config.args[:-1] == TINY.args
     rows = {r["name"]: r for r in repeat_rows(TINY, comparisons)}
     head = "sim tiny-standard repeats [exact, 4 seeds]: a error "
     assert rows[head + "mean"]["value"] == pytest.approx(0.035)
@@ -292,6 +301,26 @@ def test_repeat_rows_separate_the_bias_from_the_scatter() -> None:
     assert all("repeats" not in line for line in accuracy_lines(list(rows.values())))
     lines = repeat_lines(list(rows.values()))
     assert len(lines) == 2 and "+0.0350" in lines[1] and lines[1].rstrip().endswith("*")
+
+
+def test_each_repeat_moves_the_image_by_a_fraction_of_a_pixel() -> None:
+    """Repeats differ in the seed and in where the image falls on the pixels: the principal
+    point of every renderer's accuracy sweep moves by the repeat's shift (in [0, 1) px,
+    different for each repeat), and the mcsim sweep whose frame is fitted keeps that
+    frame's size instead of fitting it again (which would place the principal point anew)."""
+    shifts = {placement_shift_px(k) for k in range(1, 6)}
+    assert len(shifts) == 5 and all(0 < d < 1 for s in shifts for d in s)
+    for configs in ACCURACY.values():
+        for config in configs:
+            base = principal_point_px(config)
+            repeat = repeat_config(config, 3)
+            assert "--fit-frame" not in repeat.args
+            moved = principal_point_px(repeat)
+            assert np.subtract(moved, base) == pytest.approx(placement_shift_px(3), abs=1e-6)
+    fitted = next(c for c in ACCURACY["mcsim"] if "--fit-frame" in c.args)
+    # the fitted frame of the base render: 1232 x 1232 with its principal point at 613.5, 617.5
+    assert principal_point_px(fitted) == (613.5, 617.5)
+    assert repeat_config(fitted, 1).args[-5:-1] == ("--width", "1232", "--height", "1232")
 
 
 def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cache.Render]) -> None:
@@ -311,3 +340,9 @@ def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cach
         d["config"]: d["quantities"]["a"]["error"] for d in run.details if d["priors"] == "exact"
     }
     assert errors[TINY.name] != errors[repeat.name]
+    # and the image moved against the pixel grid by the repeat's fraction of a pixel
+    pp = [
+        json.loads((path / "truth.json").read_text())["sensor"]["principal_point_px"]
+        for path in (render.path, cache.sweep_dir(root, repeat))
+    ]
+    assert np.subtract(pp[1], pp[0]) == pytest.approx(placement_shift_px(1))

@@ -13,10 +13,12 @@ On each renderer three accuracy sweeps cover, together, what issue 10 asks
 for: a focus plane between rail steps, a sweep that starts or ends about 8 mm
 from the focus plane, a 2 mm step, a standard-corner-only window (F and the
 rail zero must then fall back to the data sheet) and high noise. mcsim adds a
-sweep of round microlenses (the usual MLA; the other sweeps' are square) and two
+sweep of round microlenses (the usual MLA; the other sweeps' are square), two
 sweeps with the microlenses' diffraction at 550 nm (its sinc² pattern is wider than
 the defocus over most of a sweep, as in a real camera at f/12 and beyond; about 20 min
-of rendering on 2 cores). Each
+of rendering on 2 cores) and a control: its 80 px sweep with 4×4 jittered point
+samples per pixel instead of 2×2 fixed ones (exact data sheet only; 3.5 min to render),
+which tells what the fixed points cost. Each
 two-corner sweep is calibrated with the exact data sheet and with four wrong
 ones (issue 11: F ±2 %, f ±2 %, rail zero ±2 mm, alone and combined); the
 standard-only sweep with the exact and the combined wrong data sheet.
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 RENDERERS = ("sim", "indsim", "mcsim")
 
@@ -174,6 +177,16 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
         ),
         SweepConfig(
             "mcsim",
+            "between-end8-j4",
+            _args("--preset between --frames 59 --subpixel 4 --jitter"),
+            21,
+            "the between-end8 sweep (same seed) with 4x4 jittered point samples per pixel: a "
+            "control, the pixels sampled nearly as areas (the 2x2 fixed points of the other "
+            "mcsim sweeps lock sharp corners to the pixel grid)",
+            priors=(EXACT,),
+        ),
+        SweepConfig(
+            "mcsim",
             "small-2mm-noisy",
             _args("--preset small --step-mm 2 --frames 50 --photons 1500 --read-noise 12"),
             22,
@@ -244,17 +257,91 @@ def coverage_config(renderer: str, k: int) -> SweepConfig:
 
 REPEAT_SEED_STEP = 1000
 
+PRINCIPAL_POINT_OPTION = {"sim": "--principal-point", "indsim": "--pp", "mcsim": "--pp"}
+"""Each renderer's option that places the optical axis on the sensor (px)."""
+
+
+def _option(args: tuple[str, ...], name: str) -> str | None:
+    """The last value given to option ``name`` in ``args`` (``--x v`` or ``--x=v``)."""
+    value = None
+    for i, arg in enumerate(args):
+        if arg == name and i + 1 < len(args):
+            value = args[i + 1]
+        elif arg.startswith(name + "="):
+            value = arg[len(name) + 1 :]
+    return value
+
+
+def _mcsim_spec(args: tuple[str, ...]) -> Any:
+    from bench.mcsim.__main__ import parser
+    from bench.mcsim.spec import build_spec
+
+    options = vars(parser().parse_args(["-", *args]))
+    for name in ("out_dir", "force", "jobs"):
+        options.pop(name)
+    return build_spec(**options)
+
+
+def principal_point_px(config: SweepConfig) -> tuple[float, float]:
+    """The principal point (px) ``config`` renders with: its own option, else the preset's
+    (mcsim), else where ``lfcal simulate`` places it for the frame size (sim)."""
+    given = _option(config.args, PRINCIPAL_POINT_OPTION[config.renderer])
+    if given is not None:
+        x, y = (float(v) for v in given.split(","))
+        return x, y
+    if config.renderer == "mcsim":
+        camera = _mcsim_spec(config.args).camera
+        x, y = camera.principal_point_px
+        return float(x), float(y)
+    if config.renderer == "sim":
+        from calibration.presets import get_preset, with_sweep
+        from calibration.sim_sweep import fit_frame
+
+        preset = get_preset(_option(config.args, "--preset") or "paper")
+        sweep = {"frames": int, "start_mm": float, "step_mm": float}
+        changes = {
+            key: kind(value)
+            for key, kind in sweep.items()
+            if (value := _option(config.args, "--" + key.replace("_", "-"))) is not None
+        }
+        if changes:
+            preset = with_sweep(preset, **changes)
+        size = [_option(config.args, "--" + n) for n in ("width", "height")]
+        width, height = (int(v) if v is not None else None for v in size)
+        x, y = fit_frame(preset, width, height).camera.sensor.pp
+        return float(x), float(y)
+    raise ValueError(f"no principal point known for {config.renderer} {config.name}")
+
+
+def placement_shift_px(k: int) -> tuple[float, float]:
+    """The ``k``-th repeat's shift of the whole image against the pixel grid (px, each in
+    [0, 1)): golden-ratio fractions, so that successive repeats spread over the pixel."""
+    return round((k * GOLDEN) % 1.0, 3), round((k * GOLDEN * GOLDEN) % 1.0, 3)
+
 
 def repeat_config(config: SweepConfig, k: int) -> SweepConfig:
     """The ``k``-th (1, 2, ...) repeat of an accuracy sweep: the same camera and sweep with
-    another seed (noise, and ray noise for mcsim), calibrated with the exact data sheet. One
-    seed's error is one draw: the repeats tell a bias from luck."""
+    another seed (noise, and ray noise for mcsim) and the whole image moved against the
+    pixel grid by a fraction of a pixel (:func:`placement_shift_px`, through the principal
+    point), calibrated with the exact data sheet. One seed's error is one draw: the repeats
+    tell a bias from luck. The shift matters where the pixels sample the image unevenly
+    (point samples): the errors that follow from where the corners fall on the pixels are
+    the same for every seed of one placement."""
+    x, y = principal_point_px(config)
+    dx, dy = placement_shift_px(k)
+    pp = f"{x + dx:.4f},{y + dy:.4f}"
+    args = config.args
+    if config.renderer == "mcsim" and "--fit-frame" in args:  # the fit would place it again
+        camera = _mcsim_spec(args).camera
+        args = tuple(a for a in args if a != "--fit-frame")
+        args += ("--width", str(camera.width), "--height", str(camera.height))
     return SweepConfig(
         config.renderer,
         f"{config.name}-s{k}",
-        config.args,
+        (*args, f"{PRINCIPAL_POINT_OPTION[config.renderer]}={pp}"),
         config.seed + REPEAT_SEED_STEP * k,
-        f"{config.about} (repeat {k}, seed {config.seed + REPEAT_SEED_STEP * k})",
+        f"{config.about} (repeat {k}, seed {config.seed + REPEAT_SEED_STEP * k}, "
+        f"principal point {pp} px)",
         priors=(EXACT,),
         standard_only=config.standard_only,
     )
