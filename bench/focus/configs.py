@@ -16,9 +16,10 @@ rail zero must then fall back to the data sheet) and high noise. mcsim adds a
 sweep of round microlenses (the usual MLA; the other sweeps' are square), two
 sweeps with the microlenses' diffraction at 550 nm (its sinc² pattern is wider than
 the defocus over most of a sweep, as in a real camera at f/12 and beyond; about 20 min
-of rendering on 2 cores) and a control: its 80 px sweep with 4×4 jittered point
-samples per pixel instead of 2×2 fixed ones (exact data sheet only; 3.5 min to render),
-which tells what the fixed points cost. Each
+of rendering on 2 cores) and two controls: its 80 px sweep with the 2×2 point samples
+jittered in every pixel, and with 4×4 jittered ones, instead of 2×2 at the same place in
+every pixel (exact data sheet only; 1 and 3.5 min to render): they tell what the fixed
+points cost. Each
 two-corner sweep is calibrated with the exact data sheet and with four wrong
 ones (issue 11: F ±2 %, f ±2 %, rail zero ±2 mm, alone and combined); the
 standard-only sweep with the exact and the combined wrong data sheet.
@@ -174,6 +175,15 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
             21,
             "80 px lenses, rail towards the camera, focus at rail 49.5 mm (between steps), "
             "sweep ends 8.5 mm past it",
+        ),
+        SweepConfig(
+            "mcsim",
+            "between-end8-j2",
+            _args("--preset between --frames 59 --jitter"),
+            21,
+            "the between-end8 sweep (same seed) with its 2x2 point samples jittered in every "
+            "pixel: a control, as many samples but no comb common to all pixels",
+            priors=(EXACT,),
         ),
         SweepConfig(
             "mcsim",
