@@ -39,13 +39,14 @@ Aravis 0.8 GVCP timing is fixed: a command to an absent camera fails after 5 tri
 500 ms (about 2.5 s), so detecting a lost camera during a grab takes that long.  Opening
 and reopening first send one unicast GVCP read (:func:`gvcp_ping`), so an absent camera
 is reported within about a second.
+
+How a camera is opened (no discovery), its transport and its stream are set up is in
+:mod:`drivers.aravis_connect`; how a stream buffer becomes a :class:`Frame`, in
+:mod:`drivers.aravis_frames`.
 """
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import ipaddress
 import logging
 import threading
 import time
@@ -54,8 +55,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-import numpy as np
-
+from drivers.aravis_connect import (
+    Connection,
+    connect,
+    drop_all,
+    open_stream,
+    setup_transport,
+)
+from drivers.aravis_frames import buffer_to_frame, pop_frame_buffer
 from drivers.camera import (
     SOFTWARE_TRIGGER,
     CameraContext,
@@ -64,8 +71,6 @@ from drivers.camera import (
     Frame,
     TransportSettings,
     bit_depth,
-    decode_mono,
-    pixel_format_name,
 )
 from drivers.camera_errors import (
     BackendUnavailable,
@@ -75,28 +80,15 @@ from drivers.camera_errors import (
     CameraNotFound,
     CameraTimeout,
     FeatureMissing,
-    IncompleteFrame,
     InvalidSetting,
 )
 from drivers.gige_host import (
     GVBS_CONTROL_CHANNEL_PRIVILEGE,
     gvcp_ping,
-    gvcp_read_register,
-    local_address_for,
-    resolve_ipv4,
-    rmem_default_bytes,
-    rmem_max_bytes,
-    socket_buffer_warning,
-    use_packet_ring,
 )
 from drivers.sfnc import SfncCamera
 
 log = logging.getLogger(__name__)
-
-SOCKET_BUFFER_FRAMES = 2
-"""Receive socket buffer of the UDP receiver, in frames (see ``_setup_socket_buffer``)."""
-LOOPBACK_PACKET_SIZE = 8192
-"""GVSP packet size used on loopback (no MTU limit there; 8192 keeps 50 MB frames fast)."""
 
 # GLib error codes (ArvDeviceError, ArvGcError in Aravis 0.8).
 _DEVICE_NOT_CONNECTED, _DEVICE_TRANSFER, _DEVICE_TIMEOUT = 2, 4, 5
@@ -121,50 +113,6 @@ def _aravis() -> types.SimpleNamespace:
             ) from exc
         _GI = types.SimpleNamespace(Aravis=Aravis, Gio=Gio, GLib=GLib)
     return _GI
-
-
-class _ImageCopier:
-    """Copies an ArvBuffer's image into a numpy array with one memcpy.
-
-    PyGObject's ``get_image_data()`` first copies the data into a ``bytes`` object, an
-    extra 26 MB copy per 5120 x 5120 frame; the C function is called directly instead on
-    the buffer's GObject pointer (``__gpointer__``).  Falls back to the PyGObject call.
-    """
-
-    def __init__(self) -> None:
-        lib = ctypes.CDLL(ctypes.util.find_library("aravis-0.8") or "libaravis-0.8.so.0")
-        self._image_data = lib.arv_buffer_get_image_data
-        self._image_data.restype = ctypes.c_void_p
-        self._image_data.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
-        self._pointer = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
-            ("PyCapsule_GetPointer", ctypes.pythonapi)
-        )
-
-    def copy(self, buffer: Any) -> np.ndarray:
-        size = ctypes.c_size_t()
-        data = self._image_data(self._pointer(buffer.__gpointer__, None), ctypes.byref(size))
-        out = np.empty(size.value, dtype=np.uint8)
-        if data and size.value:
-            ctypes.memmove(out.ctypes.data, data, size.value)
-        return out
-
-
-_COPIER: _ImageCopier | None = None
-
-
-def _image_array(buffer: Any) -> np.ndarray | bytes:
-    """The image bytes of an ArvBuffer, as a private uint8 array when possible."""
-    global _COPIER
-    try:
-        if _COPIER is None:
-            _COPIER = _ImageCopier()
-        return _COPIER.copy(buffer)
-    except (AttributeError, OSError, TypeError, ValueError):
-        return bytes(buffer.get_image_data())
-
-
-USB3_INTERFACE = "USB3Vision"
-GIGE_INTERFACE = "GigEVision"
 
 
 class _AravisNodes:
@@ -278,12 +226,6 @@ class _AravisNodes:
                 inc = float(self._dev.get_float_feature_increment(name))
                 return inc if inc > 0 else None
         return None
-
-
-def _drop_all(objects: list[Any]) -> None:
-    """Release GObjects (their finalizers talk to the camera and may block for seconds)."""
-    while objects:
-        objects.pop()
 
 
 class AravisCamera(CameraContext):
@@ -405,7 +347,7 @@ class AravisCamera(CameraContext):
             self._stream = self._camera = self._device = None
             self._sfnc = None
             self._lost = False
-            _drop_all(objects)
+            drop_all(objects)
 
     def temperature_c(self) -> float | None:
         """``DeviceTemperature`` (°C) now; None without one (or when closed)."""
@@ -479,7 +421,9 @@ class AravisCamera(CameraContext):
             trigger = self._applied.trigger if self._applied else SOFTWARE_TRIGGER
             if trigger == SOFTWARE_TRIGGER:
                 self._sfnc.nodes.execute("TriggerSoftware")
-            buffer = self._pop_frame_buffer(time.monotonic() + timeout_s)
+            buffer = pop_frame_buffer(
+                _aravis(), self._stream, time.monotonic() + timeout_s, self._gerrors, self.label
+            )
             if buffer is None:
                 if self._probe_lost():
                     self._mark_lost()
@@ -493,7 +437,14 @@ class AravisCamera(CameraContext):
                     device=self.label,
                 )
             try:
-                return self._to_frame(buffer)
+                return buffer_to_frame(
+                    _aravis(),
+                    buffer,
+                    applied=self._applied,
+                    info=self._info,
+                    temperature_c=self._sfnc.temperature_c() if self._sfnc else None,
+                    label=self.label,
+                )
             finally:
                 if self._stream is not None:
                     self._stream.push_buffer(buffer)
@@ -570,11 +521,20 @@ class AravisCamera(CameraContext):
     def _open_session(self) -> None:
         ar = _aravis()
         self._control_lost.clear()
-        self._connect(ar)
+        conn = connect(
+            ar,
+            address=self.address,
+            serial=self.serial,
+            interface=self.interface,
+            allow_discovery=self.allow_discovery,
+            label=self.label,
+        )
+        self._device, self._camera = conn.device, conn.camera
+        if conn.ip is not None:
+            self._ip = conn.ip
         try:
             self._signal_id = self._device.connect("control-lost", self._on_control_lost)
-            self.warnings = []
-            self._setup_transport(ar)
+            self.warnings = setup_transport(ar, conn, self.transport, self.label, self._gerrors)
             self._sfnc = SfncCamera(_AravisNodes(self), self.label)
             no_packet_size = TransportSettings(
                 packet_size=None,
@@ -604,114 +564,9 @@ class AravisCamera(CameraContext):
             self._disconnect_signal()
             self._stream = self._camera = self._device = None
             self._sfnc = None
-            _drop_all(objects)
+            drop_all(objects)
             raise
         self._lost = False
-
-    def _connect_usb3(self, ar: types.SimpleNamespace) -> None:
-        """Open a USB3 Vision camera by serial / device id with GigE Vision disabled."""
-        name = self.serial or self.address
-        assert name is not None
-        ar.Aravis.disable_interface(GIGE_INTERFACE)  # before anything enumerates devices
-        ar.Aravis.enable_interface(USB3_INTERFACE)
-        try:
-            self._camera = ar.Aravis.Camera.new(name)
-        except ar.GLib.Error as exc:
-            raise CameraNotFound(
-                f"no USB3 Vision camera {name!r} on this host ({exc.message})",
-                device=self.label,
-                hint="the USB cable (a USB 3 port), the camera serial (camera.serial), and "
-                "read/write access to the USB device (udev rule for the camera's vendor id)",
-            ) from None
-        self._device = self._camera.get_device()
-
-    def _connect(self, ar: types.SimpleNamespace) -> None:
-        """Create the ArvDevice / ArvCamera (sets ``_device`` and ``_camera``)."""
-        if self.interface == "usb3":
-            self._connect_usb3(ar)
-            return
-        ip = resolve_ipv4(self.address) if self.address else None
-        if ip is None:
-            name = self.address or self.serial
-            if not self.allow_discovery:
-                raise CameraNotFound(
-                    f"{name!r} is not an IPv4 address or host name; opening a camera by serial "
-                    "or device name needs GigE Vision discovery, which broadcasts on every "
-                    "network interface and is disabled",
-                    device=self.label,
-                    hint="set camera.address to the camera's IP (serial is then verified), "
-                    "or allow_discovery=True on a dedicated camera network",
-                )
-            try:
-                self._camera = ar.Aravis.Camera.new(name)
-            except ar.GLib.Error as exc:
-                raise CameraNotFound(
-                    f"no camera named {name!r} found ({exc.message})", device=self.label
-                ) from None
-            self._device = self._camera.get_device()
-            return
-        local = local_address_for(ip)
-        if local is None:
-            raise CameraNotFound(
-                f"no network interface routes to {ip}",
-                device=self.label,
-                hint="the host's camera interface is up and in the camera's subnet",
-            )
-        self._ip = ip
-        privilege = gvcp_read_register(ip, GVBS_CONTROL_CHANNEL_PRIVILEGE, timeout_s=1.0, tries=4)
-        if privilege is None:
-            raise CameraNotFound(f"no GigE Vision camera answers at {ip}", device=self.label)
-        if privilege & 0x3:
-            raise CameraBusy(
-                f"the camera at {ip} answers but another application controls it",
-                device=self.label,
-            )
-        try:
-            self._device = ar.Aravis.GvDevice.new(
-                ar.Gio.InetAddress.new_from_string(local), ar.Gio.InetAddress.new_from_string(ip)
-            )
-        except ar.GLib.Error as exc:
-            raise CameraNotFound(
-                f"no GigE Vision camera answers at {ip} ({exc.message})", device=self.label
-            ) from None
-        if not self._device.is_controller():
-            objects = [self._device]
-            self._device = None
-            threading.Thread(target=_drop_all, args=(objects,), daemon=True).start()
-            raise CameraBusy(
-                f"the camera at {ip} answers but another application controls it",
-                device=self.label,
-            )
-        self._camera = ar.Aravis.Camera.new_with_device(self._device)
-
-    def _setup_transport(self, ar: types.SimpleNamespace) -> None:
-        """Packet size, inter-packet delay, throughput limit (GigE and USB3 Vision)."""
-        transport = self.transport
-        if self._camera.is_uv_device():
-            if transport.throughput_limit_bps is not None:
-                with self._gerrors("DeviceLinkThroughputLimit"):
-                    if self._camera.uv_is_bandwidth_control_available():
-                        self._camera.uv_set_bandwidth(int(transport.throughput_limit_bps))
-                    else:
-                        self.warnings.append("USB3 bandwidth control not offered")
-            return
-        if not isinstance(self._device, ar.Aravis.GvDevice):
-            return
-        size = transport.packet_size
-        if size is None and self._ip is not None and ipaddress.IPv4Address(self._ip).is_loopback:
-            size = LOOPBACK_PACKET_SIZE
-        with self._gerrors("GevSCPSPacketSize"):
-            if size is not None:
-                self._camera.gv_set_packet_size(int(size))
-                self._camera.gv_set_packet_size_adjustment(ar.Aravis.GvPacketSizeAdjustment.NEVER)
-            else:
-                try:
-                    self._camera.gv_auto_packet_size()
-                except ar.GLib.Error as exc:  # keep the camera's packet size
-                    log.warning("%s: packet size negotiation failed: %s", self.label, exc.message)
-        if transport.packet_delay_ns is not None:
-            with self._gerrors("GevSCPD"):
-                self._camera.gv_set_packet_delay(int(transport.packet_delay_ns))
 
     def _on_control_lost(self, *_args: object) -> None:
         """Aravis heartbeat thread: the camera no longer lists us as controller."""
@@ -725,56 +580,22 @@ class AravisCamera(CameraContext):
     def _ensure_streaming(self) -> None:
         if self._streaming:
             return
-        ar = _aravis().Aravis
         with self._gerrors("PayloadSize"):
             payload = int(self._camera.get_payload())
         if self._stream is None or payload != self._payload:
             self._stream = None
-            with self._gerrors("stream"):
-                ring = False
-                rmem_default = rmem_default_bytes()
-                if isinstance(self._device, ar.GvDevice):
-                    ring = use_packet_ring(self.transport, payload, rmem_default)
-                    self._device.set_stream_options(
-                        ar.GvStreamOption.NONE if ring else ar.GvStreamOption.PACKET_SOCKET_DISABLED
-                    )
-                self._stream = self._camera.create_stream(None, None)
-                if isinstance(self._stream, ar.GvStream):
-                    self._stream.set_property(
-                        "frame-retention", int(self.frame_retention_ms * 1000)
-                    )
-                    if not ring:
-                        self._setup_socket_buffer(ar, payload, rmem_default)
-                    self._stream.set_property(
-                        "packet-resend",
-                        ar.GvStreamPacketResend.ALWAYS
-                        if self.packet_resend
-                        else ar.GvStreamPacketResend.NEVER,
-                    )
-                for _ in range(self.n_buffers):
-                    self._stream.push_buffer(ar.Buffer.new_allocate(payload))
+            conn = Connection(self._device, self._camera, self._ip)
+            self._stream, warnings = open_stream(
+                _aravis(), conn, self.transport, payload, self.label, self._gerrors
+            )
+            for warning in warnings:
+                if warning not in self.warnings:
+                    log.warning("%s: %s", self.label, warning)
+                    self.warnings.append(warning)
             self._payload = payload
         with self._gerrors("AcquisitionStart"):
             self._camera.start_acquisition()
         self._streaming = True
-
-    def _setup_socket_buffer(
-        self, ar: types.SimpleNamespace, payload: int, rmem_default: int | None
-    ) -> None:
-        """Receive buffer of the GVSP socket: as configured, else two frames and never
-        below the default (the kernel charges a datagram more than its payload: an 8 KiB
-        packet takes a 16 KiB buffer on loopback, so Aravis's AUTO size of one frame
-        drops the end of a burst).  The default 208 KiB overflows on a 26-52 MB frame
-        burst.  Warns when the kernel's ``net.core.rmem_max`` caps it."""
-        wanted = self.transport.socket_buffer_bytes or max(
-            SOCKET_BUFFER_FRAMES * payload, rmem_default or 0
-        )
-        self._stream.set_property("socket-buffer", ar.GvStreamSocketBuffer.FIXED)
-        self._stream.set_property("socket-buffer-size", int(wanted))
-        warning = socket_buffer_warning(wanted, rmem_max_bytes())
-        if warning is not None and warning not in self.warnings:
-            log.warning("%s: %s", self.label, warning)
-            self.warnings.append(warning)
 
     def _stop_streaming(self) -> None:
         if self._streaming:
@@ -786,23 +607,6 @@ class AravisCamera(CameraContext):
         """Requeue buffers of earlier triggers so the next pop is this trigger's frame."""
         while (old := self._stream.try_pop_buffer()) is not None:
             self._stream.push_buffer(old)
-
-    def _pop_frame_buffer(self, deadline: float) -> Any:
-        """The next buffer that holds a frame, or None at the deadline.
-
-        Aravis hands back an untouched buffer (status ``CLEARED``) when a datagram that is
-        not a frame start reaches the stream port (e.g. a stray late packet on a reused
-        port); such a buffer carries no frame and is requeued.
-        """
-        cleared = _aravis().Aravis.BufferStatus.CLEARED
-        while (remaining := deadline - time.monotonic()) > 0:
-            with self._gerrors("stream"):
-                buffer = self._stream.timeout_pop_buffer(max(1, int(remaining * 1e6)))
-            if buffer is None or buffer.get_status() != cleared:
-                return buffer
-            log.debug("%s: ignoring a buffer that holds no frame", self.label)
-            self._stream.push_buffer(buffer)
-        return None
 
     def _probe_lost(self) -> bool:
         """After a frame timeout: is the camera gone (or no longer ours)?"""
@@ -830,7 +634,7 @@ class AravisCamera(CameraContext):
         self._sfnc = None
         if objects:
             disposer = threading.Thread(
-                target=_drop_all, args=(objects,), name="aravis-release", daemon=True
+                target=drop_all, args=(objects,), name="aravis-release", daemon=True
             )
             disposer.start()
             self._disposers.append(disposer)
@@ -854,69 +658,6 @@ class AravisCamera(CameraContext):
                 device=self.label,
             ) from None
         log.info("%s: reconnected", self.label)
-
-    def _to_frame(self, buffer: Any) -> Frame:
-        ar = _aravis().Aravis
-        frame_id = int(buffer.get_frame_id())
-        status = buffer.get_status()
-        if status != ar.BufferStatus.SUCCESS:
-            raise IncompleteFrame(
-                f"frame {frame_id} arrived incomplete ({status.value_nick})",
-                status=str(status.value_nick),
-                frame_id=frame_id,
-                device=self.label,
-            )
-        if buffer.get_payload_type() not in (
-            ar.BufferPayloadType.IMAGE,
-            ar.BufferPayloadType.EXTENDED_CHUNK_DATA,
-        ):
-            raise IncompleteFrame(
-                f"frame {frame_id} carries no image ({buffer.get_payload_type().value_nick})",
-                status="not-an-image",
-                frame_id=frame_id,
-                device=self.label,
-            )
-        pixel_format = pixel_format_name(int(buffer.get_image_pixel_format()))
-        width, height = int(buffer.get_image_width()), int(buffer.get_image_height())
-        try:
-            depth = bit_depth(pixel_format)
-        except InvalidSetting:
-            raise CameraError(
-                f"frame {frame_id} is {pixel_format}, which the drivers do not decode",
-                device=self.label,
-                hint="configure a Mono8/10/12/14/16 or Mono10p/12p/12Packed pixel format",
-            ) from None
-        pixels = decode_mono(
-            _image_array(buffer),
-            width=width,
-            height=height,
-            pixel_format=pixel_format,
-            device=self.label,
-            frame_id=frame_id,
-            copy=False,
-        )
-        applied = self._applied
-        info = self._info
-        return Frame(
-            pixels=pixels,
-            frame_id=frame_id,
-            timestamp_ns=int(buffer.get_timestamp()),
-            host_timestamp_ns=int(buffer.get_system_timestamp()) or time.time_ns(),
-            exposure_us=applied.exposure_us if applied else None,
-            gain=applied.gain if applied else None,
-            pixel_format=pixel_format,
-            width=width,
-            height=height,
-            offset_x=int(buffer.get_image_x()),
-            offset_y=int(buffer.get_image_y()),
-            bit_depth=depth,
-            device=self.label,
-            gain_feature=info.gain_feature if info else None,
-            black_level=applied.black_level if applied else None,
-            temperature_c=self._sfnc.temperature_c() if self._sfnc else None,
-            trigger=applied.trigger if applied else SOFTWARE_TRIGGER,
-            flat_field=applied.flat_field if applied else None,
-        )
 
 
 __all__ = ["AravisCamera"]
