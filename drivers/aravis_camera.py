@@ -56,7 +56,6 @@ from contextlib import contextmanager
 from typing import Any
 
 from drivers.aravis_connect import (
-    Connection,
     connect,
     drop_all,
     open_stream,
@@ -289,10 +288,6 @@ class AravisCamera(CameraContext):
         self.serial = serial
         self.allow_discovery = allow_discovery
         self.interface = interface
-        self.packet_size = self.transport.packet_size
-        self.frame_retention_ms = self.transport.frame_retention_ms
-        self.n_buffers = self.transport.buffer_count
-        self.packet_resend = self.transport.packet_resend
         if interface == "usb3":
             self.label = f"usb3://{serial or address}"
         else:
@@ -584,9 +579,14 @@ class AravisCamera(CameraContext):
             payload = int(self._camera.get_payload())
         if self._stream is None or payload != self._payload:
             self._stream = None
-            conn = Connection(self._device, self._camera, self._ip)
             self._stream, warnings = open_stream(
-                _aravis(), conn, self.transport, payload, self.label, self._gerrors
+                _aravis(),
+                self._camera,
+                self._device,
+                self.transport,
+                payload,
+                self.label,
+                self._gerrors,
             )
             for warning in warnings:
                 if warning not in self.warnings:

@@ -177,13 +177,14 @@ def setup_transport(
 
 def open_stream(
     ar: types.SimpleNamespace,
-    conn: Connection,
+    camera: Any,
+    device: Any,
     transport: TransportSettings,
     payload: int,
     label: str,
     gerrors: GErrors,
 ) -> tuple[Any, list[str]]:
-    """A stream for frames of ``payload`` bytes with ``transport.buffer_count`` buffers
+    """A stream of ``camera`` (on ``device``) for frames of ``payload`` bytes with ``transport.buffer_count`` buffers
     queued, and the warnings (a socket buffer the kernel caps).
 
     GigE Vision: the packet ring (``PACKET_MMAP``) when
@@ -198,12 +199,12 @@ def open_stream(
     with gerrors("stream"):
         ring = False
         rmem_default = rmem_default_bytes()
-        if isinstance(conn.device, arv.GvDevice):
+        if isinstance(device, arv.GvDevice):
             ring = use_packet_ring(transport, payload, rmem_default)
-            conn.device.set_stream_options(
+            device.set_stream_options(
                 arv.GvStreamOption.NONE if ring else arv.GvStreamOption.PACKET_SOCKET_DISABLED
             )
-        stream = conn.camera.create_stream(None, None)
+        stream = camera.create_stream(None, None)
         if isinstance(stream, arv.GvStream):
             stream.set_property("frame-retention", int(transport.frame_retention_ms * 1000))
             if not ring:

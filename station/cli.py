@@ -125,9 +125,12 @@ def _datasheet(args: argparse.Namespace) -> Any:
     return None if sheet == DataSheet() else sheet
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
+def simulated_preset(args: argparse.Namespace) -> Any:
+    """The camera and sweep ``lfcal simulate`` renders for its parsed ``args``: the preset
+    with the sweep and optics options applied and the frame fitted (``UserError`` for
+    impossible values)."""
     from calibration.presets import get_preset, with_sweep
-    from calibration.sim_sweep import fit_frame, write_sweep
+    from calibration.sim_sweep import fit_frame
 
     try:
         preset = get_preset(args.preset)
@@ -153,9 +156,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if value is not None and value < 1:
             raise UserError(f"--{name} must be a positive number of pixels, got {value}")
     try:
-        preset = fit_frame(preset, args.width, args.height, pp)
+        return fit_frame(preset, args.width, args.height, pp)
     except ValueError as exc:
         raise UserError(f"impossible camera: {exc}") from None
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from calibration.sim_sweep import write_sweep
+
+    preset = simulated_preset(args)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise UserError(f"{out} already exists and is not empty (use --overwrite)")

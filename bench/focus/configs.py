@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 RENDERERS = ("sim", "indsim", "mcsim")
 
@@ -282,45 +281,37 @@ def _option(args: tuple[str, ...], name: str) -> str | None:
     return value
 
 
-def _mcsim_spec(args: tuple[str, ...]) -> Any:
-    from bench.mcsim.__main__ import parser
-    from bench.mcsim.spec import build_spec
+def _rendered_frame(config: SweepConfig) -> tuple[tuple[float, float], int, int]:
+    """The principal point (px) and the frame size ``config`` renders with, worked out by
+    the renderer's own command line (mcsim's spec, ``lfcal simulate``'s preset; indsim's
+    configs give ``--pp``, ``--width`` and ``--height``)."""
+    if config.renderer == "mcsim":
+        from bench.mcsim.__main__ import parser as mcsim_parser
+        from bench.mcsim.spec import build_spec
 
-    options = vars(parser().parse_args(["-", *args]))
-    for name in ("out_dir", "force", "jobs"):
-        options.pop(name)
-    return build_spec(**options)
+        options = vars(mcsim_parser().parse_args(["-", *config.args]))
+        for name in ("out_dir", "force", "jobs"):
+            options.pop(name)
+        camera = build_spec(**options).camera
+        x, y = camera.principal_point_px
+        return (float(x), float(y)), int(camera.width), int(camera.height)
+    if config.renderer == "sim":
+        from station.cli import build_parser, simulated_preset
+
+        args = build_parser().parse_args(["simulate", "-", *config.args])
+        sensor = simulated_preset(args).camera.sensor
+        return (float(sensor.pp[0]), float(sensor.pp[1])), int(sensor.width), int(sensor.height)
+    given = _option(config.args, PRINCIPAL_POINT_OPTION[config.renderer])
+    if given is None:
+        raise ValueError(f"no principal point known for {config.renderer} {config.name}")
+    x, y = (float(v) for v in given.split(","))
+    size = (_option(config.args, "--width"), _option(config.args, "--height"))
+    return (x, y), int(size[0] or 0), int(size[1] or 0)
 
 
 def principal_point_px(config: SweepConfig) -> tuple[float, float]:
-    """The principal point (px) ``config`` renders with: its own option, else the preset's
-    (mcsim), else where ``lfcal simulate`` places it for the frame size (sim)."""
-    given = _option(config.args, PRINCIPAL_POINT_OPTION[config.renderer])
-    if given is not None:
-        x, y = (float(v) for v in given.split(","))
-        return x, y
-    if config.renderer == "mcsim":
-        camera = _mcsim_spec(config.args).camera
-        x, y = camera.principal_point_px
-        return float(x), float(y)
-    if config.renderer == "sim":
-        from calibration.presets import get_preset, with_sweep
-        from calibration.sim_sweep import fit_frame
-
-        preset = get_preset(_option(config.args, "--preset") or "paper")
-        sweep = {"frames": int, "start_mm": float, "step_mm": float}
-        changes = {
-            key: kind(value)
-            for key, kind in sweep.items()
-            if (value := _option(config.args, "--" + key.replace("_", "-"))) is not None
-        }
-        if changes:
-            preset = with_sweep(preset, **changes)
-        size = [_option(config.args, "--" + n) for n in ("width", "height")]
-        width, height = (int(v) if v is not None else None for v in size)
-        x, y = fit_frame(preset, width, height).camera.sensor.pp
-        return float(x), float(y)
-    raise ValueError(f"no principal point known for {config.renderer} {config.name}")
+    """The principal point (px) ``config`` renders with (:func:`_rendered_frame`)."""
+    return _rendered_frame(config)[0]
 
 
 def placement_shift_px(k: int) -> tuple[float, float]:
@@ -337,14 +328,13 @@ def repeat_config(config: SweepConfig, k: int) -> SweepConfig:
     tell a bias from luck. The shift matters where the pixels sample the image unevenly
     (point samples): the errors that follow from where the corners fall on the pixels are
     the same for every seed of one placement."""
-    x, y = principal_point_px(config)
+    (x, y), width, height = _rendered_frame(config)
     dx, dy = placement_shift_px(k)
     pp = f"{x + dx:.4f},{y + dy:.4f}"
     args = config.args
-    if config.renderer == "mcsim" and "--fit-frame" in args:  # the fit would place it again
-        camera = _mcsim_spec(args).camera
+    if "--fit-frame" in args:  # mcsim: the fit would place the principal point again
         args = tuple(a for a in args if a != "--fit-frame")
-        args += ("--width", str(camera.width), "--height", str(camera.height))
+        args += ("--width", str(width), "--height", str(height))
     return SweepConfig(
         config.renderer,
         f"{config.name}-s{k}",
