@@ -107,9 +107,9 @@ def refine_slope(
     norm, contrast = _normalised(values, sign, block, ends)
     # a profile weighs its block's contrast squared (the pooled edge spread's weights): a
     # block without an edge (a dark gap, an unlit or unrendered part of the frame) none
-    typical = float(np.median(np.abs(contrast))) if contrast.size else 0.0
+    typical = typical_contrast(contrast)
     ok = np.isfinite(norm).all(axis=1) & (np.abs(contrast) > MIN_CONTRAST * typical)
-    if ok.sum() < MIN_PROFILES:
+    if ok.sum() < MIN_PROFILES or not typical > 0:
         return SlopeCorrection(0.0, float("nan"))
     # the samples near the edge, flattened: the flat ends say nothing of its position
     near = np.abs(x) <= FIT_HALF_PX
@@ -158,6 +158,22 @@ def _cluster_se(
     meat = clustered_meat(design * resid[:, None], cluster, parameters_lost=design.shape[1])
     var = float((inverse @ meat @ inverse)[-1, -1])
     return float(np.sqrt(var)) if var > 0 else float("nan")
+
+
+def typical_contrast(contrast: NDArray[np.float64]) -> float:
+    """The contrast of the profiles that cross an edge: the median of those above
+    :data:`MIN_CONTRAST` of the 95th percentile of ``|contrast|`` (0 without any).
+
+    Not the median of all: where most of an edge's profiles lie in a part of the frame
+    that shows no edge (unlit, or outside the window a renderer drew), that median is the
+    noise's, or exactly 0 on a dark level without read noise, and every block would pass
+    a threshold set by it."""
+    magnitude = np.abs(contrast[np.isfinite(contrast)])
+    if magnitude.size == 0:
+        return 0.0
+    high = float(np.percentile(magnitude, 95))
+    edged = magnitude[magnitude > MIN_CONTRAST * high]
+    return float(np.median(edged)) if edged.size else 0.0
 
 
 def _normalised(

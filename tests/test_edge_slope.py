@@ -106,6 +106,26 @@ def test_blocks_without_an_edge_do_not_count() -> None:
     assert clean.delta == pytest.approx(1e-3, abs=4 * clean.se)
 
 
+def test_an_edge_mostly_outside_what_the_frame_shows_is_still_measured() -> None:
+    """Most blocks unrendered and exactly dark (a renderer's window, a dark level without
+    read noise): their contrast is exactly 0, so the median contrast of all blocks is 0;
+    the edges the frame does show still give the slope (it once gave up, and the profiles
+    kept the lattice's slope, 7e-3 off on a low-noise ray-traced frame)."""
+    rng = np.random.default_rng(11)
+    x, v, along, sign, block, half = _profiles(rng, slope_error=1.5e-3, width_px=0.7, noise=40.0)
+    dead_blocks = np.arange(16) >= 6  # 10 of 16 blocks: well over half the profiles
+    dead = dead_blocks[block]
+    v_dead = v.copy()
+    v_dead[dead] = 0.0
+    live_only = refine_slope(
+        x[~dead], v[~dead], along[~dead], sign[~dead], block[~dead], half[~dead]
+    )
+    with_dead = refine_slope(x, v_dead, along, sign, block, half)
+    assert np.isfinite(with_dead.se)
+    assert with_dead.delta == pytest.approx(live_only.delta, abs=1e-9)
+    assert with_dead.delta == pytest.approx(1.5e-3, abs=4 * with_dead.se)
+
+
 def test_pixel_locked_edges_say_how_little_they_know() -> None:
     """Sharp edges sampled at two points per pixel: each block's edge is locked to the
     pixel grid, its rows move together. The (block-clustered) standard errors are far
