@@ -43,6 +43,7 @@ from .edge_slope import refine_slope
 from .edge_spread import EdgeProfiles
 from .flat_field import FlatField
 from .lens_grid import LensGrid
+from .placement_error import PlacementError
 
 
 @dataclass(frozen=True)
@@ -83,12 +84,14 @@ class ProfileWindow:
 
 @dataclass(frozen=True)
 class PlacedProfiles:
-    """Profiles and their placement error (px): ``jitter_px`` the RMS spread of the
-    lattice's prediction errors about their common shift, ``jitter_fixed_scale_px`` the
-    same with the lattice's scale known (its other parameters conditioned on it). Each
-    profile's lever is how far it moves per unit error of the scale ``1+Q``, the offset
-    ``c`` erring with it as the fit's covariance says (``δc = Σ_c,scale/Σ_scale·δ``): for
-    the vertical edge ``∓(m_x - p_x)``, ``p`` the point the fit pivots about."""
+    """Profiles and their placement error: ``placement`` per profile
+    (:class:`~calibration.placement_error.PlacementError`, whose spread the pooled
+    function takes with its own weights), ``jitter_px`` its RMS spread about the common
+    shift over all profiles alike (px), ``jitter_fixed_scale_px`` the same with the
+    lattice's scale known (its other parameters conditioned on it). Each profile's lever
+    is how far it moves per unit error of the scale ``1+Q``, the offset ``c`` erring with
+    it as the fit's covariance says (``δc = Σ_c,scale/Σ_scale·δ``): for the vertical edge
+    ``∓(m_x - p_x)``, ``p`` the point the fit pivots about."""
 
     profiles: EdgeProfiles
     jitter_px: float
@@ -96,6 +99,7 @@ class PlacedProfiles:
     slope_corrections: tuple[float, float] = (0.0, 0.0)
     """What the profiles changed the lattice's slopes by: (vertical edge ``dx/dy``,
     horizontal edge ``dy/dx``; :mod:`calibration.edge_slope`)."""
+    placement: PlacementError = PlacementError.none()
 
 
 def half_edge_profiles(
@@ -128,7 +132,9 @@ def half_edge_profiles(
     sigma[3, 3], sigma[4, 4] = lattice.half_var_px2
     parts = []
     gradients = []
-    slope_var: list[tuple[float, int]] = []  # the refined slopes' placement variance
+    slope_levers: list[NDArray[np.float64]] = []  # per profile, on its edge's slope
+    slope_vars: list[NDArray[np.float64]] = []  # the variance of the slope it was placed with
+    axes: list[NDArray[np.int64]] = []
     corrections = [0.0, 0.0]
     # the white image's shading gradient at each micro-image centre (the flat field's tilt)
     tilt = window.flat_field.gradients((cx, cy), (mx, my))
@@ -151,8 +157,9 @@ def half_edge_profiles(
         delta, var = measured.combined(lattice.slope_var[axis])
         x = x - delta * lever_along[:, None]
         corrections[axis] = delta
-        if np.isfinite(var):
-            slope_var.append((var * float(np.var(lever_along)), lens.size))
+        slope_levers.append(lever_along)
+        slope_vars.append(np.full(lens.size, var if np.isfinite(var) else 0.0))
+        axes.append(np.full(lens.size, axis, dtype=np.int64))
         parts.append((x, y, lens * 4 + 2 * axis + half))
         # d(sample position)/d(parameters): x = sign·(column - edge), the edge moving with
         # m·δ(1+Q) + δc and by +δhalf before the corner, -δhalf after it
@@ -175,36 +182,20 @@ def half_edge_profiles(
     direction[0] = 1.0
     if sigma[0, 0] > 0:
         direction[1:3] = sigma[1:3, 0] / sigma[0, 0]
-    extra = sum(v * n for v, n in slope_var) / max(label.size, 1)
+    placement = PlacementError(
+        grads,
+        sigma,
+        np.concatenate(slope_levers),
+        np.concatenate(slope_vars),
+        np.concatenate(axes),
+    )
     return PlacedProfiles(
         EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
-        float(np.hypot(_placement_jitter(grads, sigma), np.sqrt(extra))),
-        float(np.hypot(_placement_jitter(grads, _scale_known(sigma)), np.sqrt(extra))),
+        placement.jitter_px(),
+        placement.jitter_px(scale_known=True),
         (corrections[0], corrections[1]),
+        placement,
     )
-
-
-def _scale_known(sigma: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The covariance of the other parameters given the first (the scale): zero in its
-    row and column, ``Σ_rr - Σ_r0·Σ_0r/Σ_00`` elsewhere."""
-    out = np.zeros_like(sigma)
-    if sigma[0, 0] > 0:
-        out[1:, 1:] = sigma[1:, 1:] - np.outer(sigma[1:, 0], sigma[0, 1:]) / sigma[0, 0]
-    else:
-        out[1:, 1:] = sigma[1:, 1:]
-    return out
-
-
-def _placement_jitter(gradients: NDArray[np.float64], sigma: NDArray[np.float64]) -> float:
-    """RMS spread of the profiles' placement errors about their common shift (px).
-
-    With errors ``e_p = g_p·δ``, ``δ ~ N(0, Σ)``, the pooled function is blurred by
-    ``mean_p e_p² - (mean_p e_p)²`` in expectation; the common shift ``mean_p e_p``
-    moves the function as a whole, which the defocus model fits per observation.
-    """
-    mean_sq = float(np.mean(np.einsum("pi,ij,pj->p", gradients, sigma, gradients)))
-    g_bar = gradients.mean(axis=0)
-    return float(np.sqrt(max(mean_sq - float(g_bar @ sigma @ g_bar), 0.0)))
 
 
 def _cut(

@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .edge_levels import levels_with_drift, levels_with_tail_shape
+from .placement_error import PlacementError
 
 ESF_HALF_PX = 10.0
 """Half width of the binned edge-spread function (pixels): the longest profile
@@ -496,6 +497,7 @@ def frame_esf(
     jitter_fixed_scale_px: float = float("nan"),
     max_flat_px: float = np.inf,
     drift: bool = True,
+    placement: PlacementError | None = None,
 ) -> BinnedEsf | None:
     """The binned, normalised edge-spread function of pooled profiles (None if too few).
 
@@ -511,7 +513,10 @@ def frame_esf(
     drift, at fixed points of the tails' shared shape
     (:func:`~calibration.edge_levels.levels_with_tail_shape`). Profiles whose
     scatter about the pooled function is far above the others' (a defect, a
-    stray edge) are dropped.
+    stray edge) are dropped. ``placement``: the profiles' placement errors
+    (:mod:`calibration.placement_error`); when given, the jitter recorded is their
+    spread as this function weighs its profiles (contrast squared, the dropped ones
+    none) instead of ``jitter_px`` and ``jitter_fixed_scale_px``.
     """
     if prof.count < MIN_PROFILES:
         return None
@@ -538,6 +543,11 @@ def frame_esf(
     groups: tuple[LeverGroup, ...] = ()
     if prof.lever is not None:
         groups = _lever_groups(prof.x[good], z[good], weight[good], prof.lever[good])
+    if placement is not None and placement.gradients.shape[0] == prof.count:
+        # the spread of the placement errors as this function weighs its profiles
+        pooled = np.where(good, c * c, 0.0)
+        jitter_px = placement.jitter_px(pooled)
+        jitter_fixed_scale_px = placement.jitter_px(pooled, scale_known=True)
     return replace(
         binned,
         jitter_px=float(jitter_px),

@@ -414,6 +414,7 @@ def _edge_spread(
         start_width_px=fit.edge_width_px,
         jitter_px=placed.jitter_px,
         jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
+        placement=placed.placement,
         max_flat_px=half_px - TAIL_SAMPLES,
         drift=not window.flat_field.active,
     )

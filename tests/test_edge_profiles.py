@@ -14,15 +14,11 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from calibration.edge_profiles import (
-    CornerLattice,
-    ProfileWindow,
-    _placement_jitter,
-    half_edge_profiles,
-)
+from calibration.edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
 from calibration.edge_spread import LEVER_GROUPS, BinnedEsf, frame_esf
 from calibration.flat_field import FlatField
 from calibration.lens_grid import LensGrid
+from calibration.placement_error import PlacementError
 
 PITCH, Q, SIGMA, RADIUS = 40.0, 0.25, 0.7, 14.0
 DARK, LIGHT = 100.0, 900.0
@@ -208,13 +204,50 @@ def test_a_wrong_lattice_scale_blurs_and_placing_again_by_lever_undoes_it() -> N
     np.testing.assert_allclose(back.value, again.value, atol=1e-5)  # JSON rounding
 
 
+def _lattice_only(gradients: np.ndarray, sigma: np.ndarray) -> PlacementError:
+    n = gradients.shape[0]
+    return PlacementError(gradients, sigma, np.zeros(n), np.zeros(n), np.zeros(n, np.int64))
+
+
 def test_a_shift_common_to_every_profile_is_not_counted_as_jitter() -> None:
     """The defocus model fits each function's position; only the spread about it blurs."""
     sigma = np.diag([0.0, 0.0, 0.0, 0.01, 0.0])
     same = np.tile([0.0, 0.0, 0.0, 1.0, 0.0], (50, 1))
-    assert _placement_jitter(same, sigma) == pytest.approx(0.0, abs=1e-12)
+    assert _lattice_only(same, sigma).jitter_px() == pytest.approx(0.0, abs=1e-8)  # rounding
     mixed = same * np.repeat([1.0, -1.0], 25)[:, None]
-    assert _placement_jitter(mixed, sigma) == pytest.approx(0.1)
+    assert _lattice_only(mixed, sigma).jitter_px() == pytest.approx(0.1)
+
+
+def test_the_jitter_is_the_spread_the_pooled_function_weighs() -> None:
+    """Profiles that err far more than the rest but carry no weight in the pooled function
+    (no edge where they were cut) add nothing to its spread; weighted, it is the spread of
+    the weighted errors, drawn many times."""
+    rng = np.random.default_rng(3)
+    n = 200
+    lever = np.linspace(-100.0, 100.0, n)  # a profile's lever on the scale and on a slope
+    gradients = np.zeros((n, 5))
+    gradients[:, 0] = lever
+    gradients[:, 1] = 1.0
+    sigma = np.diag([1e-7, 1e-4, 0.0, 0.0, 0.0])
+    axis = (np.arange(n) % 2).astype(np.int64)
+    slope_var = np.where(axis == 0, 4e-8, 1e-8)
+    placement = PlacementError(gradients, sigma, lever, slope_var, axis)
+    weights = np.where(np.abs(lever) > 60.0, 0.0, 1.0 + rng.uniform(size=n))
+    # Monte-Carlo: draw the lattice's and the slopes' errors, spread the profiles by them
+    spreads = []
+    for _ in range(4000):
+        delta = rng.normal(0.0, np.sqrt(np.diag(sigma)))
+        slope = rng.normal(0.0, np.sqrt([4e-8, 1e-8]))
+        e = gradients @ delta + slope[axis] * lever
+        mean = np.average(e, weights=weights)
+        spreads.append(np.average((e - mean) ** 2, weights=weights))
+    assert placement.jitter_px(weights) == pytest.approx(np.sqrt(np.mean(spreads)), rel=0.03)
+    assert placement.jitter_px(weights) < 0.7 * placement.jitter_px()
+    # the scale known: only the slopes' part is left (the offset moves every profile alike)
+    slopes_only = PlacementError(np.zeros((n, 5)), sigma, lever, slope_var, axis)
+    assert placement.jitter_px(weights, scale_known=True) == pytest.approx(
+        slopes_only.jitter_px(weights), rel=1e-9
+    )
 
 
 def _scale_only_esf(
