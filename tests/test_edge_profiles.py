@@ -15,7 +15,7 @@ import pytest
 from scipy.special import ndtr
 
 from calibration.edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
-from calibration.edge_spread import LEVER_GROUPS, BinnedEsf, frame_esf
+from calibration.edge_spread import LEVER_GROUPS, BinnedEsf, EdgeProfiles, frame_esf
 from calibration.flat_field import FlatField
 from calibration.lens_grid import LensGrid
 from calibration.placement_error import PlacementError
@@ -169,6 +169,27 @@ def test_an_error_of_1_plus_q_blurs_by_the_lenses_spread() -> None:
     lever = placed.profiles.lever
     assert lever is not None and lever.shape == (placed.profiles.count,)
     assert np.std(lever) * 1e-3 == pytest.approx(placed.jitter_px, rel=0.01)
+
+
+def test_the_pooled_function_records_the_spread_of_the_profiles_it_weighs() -> None:
+    """The frame's profiles with the largest levers show no edge (their micro-images are
+    dark, as outside a renderer's window): the function drops them, and the jitter it
+    records is the spread of the others' placement errors, less than over all of them."""
+    frame, lens, image, coef = _frame()
+    lattice = CornerLattice(coef=coef, covariance=np.diag([1e-6, 0.0, 0.0]))
+    placed = half_edge_profiles(frame, lattice, lens, image, _window())
+    lever = placed.profiles.lever
+    assert lever is not None
+    far = np.abs(lever - np.median(lever)) > 0.6 * np.max(np.abs(lever - np.median(lever)))
+    dark_y = placed.profiles.y.copy()
+    dark_y[far] = 10.0 + np.random.default_rng(5).normal(0.0, 2.0, dark_y[far].shape)
+    profiles = EdgeProfiles(placed.profiles.x, dark_y, placed.profiles.block, lever)
+    esf = frame_esf(profiles, start_width_px=SIGMA, placement=placed.placement)
+    assert esf is not None
+    shown = ~far
+    expected = float(np.sqrt(np.var(lever[shown]))) * 1e-3  # the scale's error, 1e-3
+    assert esf.jitter_px == pytest.approx(expected, rel=0.1)
+    assert esf.jitter_px < 0.8 * placed.jitter_px
 
 
 def test_a_wrong_lattice_scale_blurs_and_placing_again_by_lever_undoes_it() -> None:
