@@ -67,6 +67,11 @@ class CornerOptions:
     hough: bool = False
     restart_px: float = 1.5
     max_block_offset_px: float = 3.0
+    block_offset_expected_px: float = 0.0
+    """How far apart the two halves of each edge are expected to lie (the reference
+    corner's gap ``Cr`` imaged; 0 for the standard corner): a corner whose halves differ
+    from it by more than ``max_block_offset_px`` is rejected (not a corner, or two
+    different edges)."""
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
     profile_core_half_px: int = 2
@@ -550,9 +555,11 @@ def _finish(
         return
     xa, xd, x_slope, x_se, x_ref = _edge_from_blocks(per["A"][:4], per["D"][:4])
     yb, yc, y_slope, y_se, y_ref = _edge_from_blocks(per["B"][:4], per["C"][:4])
-    if abs(xa - xd) > opts.max_block_offset_px or abs(yb - yc) > opts.max_block_offset_px:
+    expected = opts.block_offset_expected_px
+    off_x, off_y = abs(abs(xa - xd) - expected), abs(abs(yb - yc) - expected)
+    if off_x > opts.max_block_offset_px or off_y > opts.max_block_offset_px:
         m.reason = "the two sides of an edge disagree (not a corner, or two different edges)"
-        m.detail = f"by {max(abs(xa - xd), abs(yb - yc)):.1f} px"
+        m.detail = f"by {max(abs(xa - xd), abs(yb - yc)):.1f} px (expected {expected:.1f} px)"
         return
     m.x = 0.5 * (xa + xd)
     m.y = 0.5 * (yb + yc)

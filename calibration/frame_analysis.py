@@ -18,7 +18,7 @@ Eq. 3 (mean over adjacent pairs along x) is reported beside it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -275,6 +275,19 @@ def _eq3(used: list[CornerMeasurement], ctx: FrameContext) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _reference_gap_px(
+    rough: list[CornerMeasurement], ctx: FrameContext, object_distance_mm: float
+) -> float:
+    """The reference corner's gap ``Cr`` as a micro-image shows it (px): board mm times
+    the main lens's ``v/u`` times the micro-images' rough ``Q`` over the pixel pitch; 0 when
+    no rough ``Q`` is known."""
+    q = _rough_q(rough, ctx)
+    if not (np.isfinite(q) and q > 0):
+        return 0.0
+    v = float(image_distance(object_distance_mm, ctx.main_focal_mm))
+    return float(ctx.board.reference_gap_mm * v / object_distance_mm * q / ctx.pixel_pitch_mm)
+
+
 def _group_by_board_corner(
     meas: list[CornerMeasurement], ctx: FrameContext, object_distance_mm: float
 ) -> dict[tuple[int, int], list[CornerMeasurement]]:
@@ -333,15 +346,21 @@ def analyze_frame(
         }
         if wanted:
             break
-    starts = [(m.lens_i, m.lens_j, m.x, m.y) for members in wanted.values() for m in members]
-    meas = measure_corners(
-        frame,
-        starts,
-        ctx.image_grid,
-        interior_radius_px=ctx.interior_radius_px,
-        options=ctx.options,
-        lens_grid=ctx.lens_grid,
-    )
+    # the reference corner's edges are split by its gap Cr, imaged at the frame's rough Q
+    gap_px = _reference_gap_px(rough, ctx, object_distance_mm)
+    meas = []
+    for key, members in wanted.items():
+        options = ctx.options
+        if key == (2, 0) and gap_px > 0:
+            options = replace(options, block_offset_expected_px=gap_px)
+        meas += measure_corners(
+            frame,
+            [(m.lens_i, m.lens_j, m.x, m.y) for m in members],
+            ctx.image_grid,
+            interior_radius_px=ctx.interior_radius_px,
+            options=options,
+            lens_grid=ctx.lens_grid,
+        )
     rejected: dict[str, int] = {}
     for m in meas:
         if not m.ok:

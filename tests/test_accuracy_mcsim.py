@@ -62,3 +62,23 @@ def test_a_low_noise_sweep_with_random_point_samples_is_calibrated(tmp_path: Pat
     )
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
+
+
+def test_a_board_with_a_wide_reference_gap_is_calibrated(tmp_path: Path) -> None:
+    """A reference gap Cr of 0.2 mm (twice the default) is imaged 3-4 px wide before the
+    focus plane: the two halves of each edge lie that far apart, which the corner check
+    once took for "two different edges" (3 px at most), so the reference corner was found
+    only past focus and F came out -0.14 % at 3.8 sigma (rail zero -0.33 mm). The halves
+    are now compared with the gap as the frame images it."""
+    sweep = render_mcsim(
+        tmp_path / "gap",
+        frames=31,
+        step_mm=2,
+        seed=10,
+        extra=("--gap-mm", "0.2", "--start-mm", "20"),
+    )
+    result, truth = calibrate(sweep)
+    check_accuracy(result, truth)
+    # found on both sides of the focus plane, not only past it where the gap images narrower
+    found = [f["rail_mm"] for f in result["frames"] if (f.get("reference") or {}).get("found")]
+    assert min(found) < truth["focus_rail_mm"] - 6.0 < max(found)
