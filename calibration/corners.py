@@ -38,6 +38,7 @@ Coordinates are sensor pixels, pixel centres at integers, arrays ``[y, x]``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -67,11 +68,9 @@ class CornerOptions:
     hough: bool = False
     restart_px: float = 1.5
     max_block_offset_px: float = 3.0
-    block_offset_expected_px: float = 0.0
-    """How far apart the two halves of each edge are expected to lie (the reference
-    corner's gap ``Cr`` imaged; 0 for the standard corner): a corner whose halves differ
-    from it by more than ``max_block_offset_px`` is rejected (not a corner, or two
-    different edges)."""
+    """A corner whose two halves of an edge lie farther apart than expected (0, or the
+    reference corner's gap as :func:`measure_corners` is told) by more than this is
+    rejected: not a corner, or two different edges."""
     blur_clearance_px: float = 3.0
     blur_radius_fraction: float = 0.7
     profile_core_half_px: int = 2
@@ -414,8 +413,12 @@ def measure_corners(
     interior_radius_px: float,
     options: CornerOptions | None = None,
     lens_grid: LensGrid | None = None,
+    gaps_px: Sequence[float] | None = None,
 ) -> list[CornerMeasurement]:
     """ESIF corner measurement for each start ``(i, j, x0, y0)`` (lens index, rough position).
+
+    ``gaps_px``: per start, how far apart the two halves of each edge are expected to lie
+    (the reference corner's gap ``Cr`` as the micro-image shows it); 0 for all when None.
 
     ``lens_grid`` (the lens centres) gives each micro-image the tilt of the shading
     ``options.flat_field`` divides out (without it only the bowl about the micro-image
@@ -428,7 +431,8 @@ def measure_corners(
     """
     opts = options or CornerOptions()
     img = np.asarray(frame, dtype=np.float32)
-    results = _measure_batch(img, starts, image_grid, interior_radius_px, opts, lens_grid)
+    gaps = [0.0] * len(starts) if gaps_px is None else [float(g) for g in gaps_px]
+    results = _measure_batch(img, starts, gaps, image_grid, interior_radius_px, opts, lens_grid)
     again = [
         k
         for k, m in enumerate(results)
@@ -436,7 +440,9 @@ def measure_corners(
     ]
     if again:
         restarts = [(starts[k][0], starts[k][1], results[k].x, results[k].y) for k in again]
-        second = _measure_batch(img, restarts, image_grid, interior_radius_px, opts, lens_grid)
+        second = _measure_batch(
+            img, restarts, [gaps[k] for k in again], image_grid, interior_radius_px, opts, lens_grid
+        )
         for k, m in zip(again, second, strict=True):
             results[k] = m
     return results
@@ -445,6 +451,7 @@ def measure_corners(
 def _measure_batch(
     img: NDArray[np.float32],
     starts: list[tuple[int, int, float, float]],
+    gaps: list[float],
     image_grid: LensGrid,
     interior_radius_px: float,
     opts: CornerOptions,
@@ -506,12 +513,16 @@ def _measure_batch(
     for b in all_blocks:
         by_owner.setdefault(b.owner, {})[b.name] = b
     for owner, owned in by_owner.items():
-        _finish(results[owner], owned, fits, opts)
+        _finish(results[owner], owned, fits, opts, gaps[owner])
     return results
 
 
 def _finish(
-    m: CornerMeasurement, blocks: dict[str, _Block], fits: EdgeFits, opts: CornerOptions
+    m: CornerMeasurement,
+    blocks: dict[str, _Block],
+    fits: EdgeFits,
+    opts: CornerOptions,
+    gap_px: float,
 ) -> None:
     missing = [n for n in "ADBC" if n not in blocks]
     if missing:
@@ -555,11 +566,10 @@ def _finish(
         return
     xa, xd, x_slope, x_se, x_ref = _edge_from_blocks(per["A"][:4], per["D"][:4])
     yb, yc, y_slope, y_se, y_ref = _edge_from_blocks(per["B"][:4], per["C"][:4])
-    expected = opts.block_offset_expected_px
-    off_x, off_y = abs(abs(xa - xd) - expected), abs(abs(yb - yc) - expected)
+    off_x, off_y = abs(abs(xa - xd) - gap_px), abs(abs(yb - yc) - gap_px)
     if off_x > opts.max_block_offset_px or off_y > opts.max_block_offset_px:
         m.reason = "the two sides of an edge disagree (not a corner, or two different edges)"
-        m.detail = f"by {max(abs(xa - xd), abs(yb - yc)):.1f} px (expected {expected:.1f} px)"
+        m.detail = f"by {max(abs(xa - xd), abs(yb - yc)):.1f} px (expected {gap_px:.1f} px)"
         return
     m.x = 0.5 * (xa + xd)
     m.y = 0.5 * (yb + yc)

@@ -94,12 +94,18 @@ class PlacedProfiles:
     ``∓(m_x - p_x)``, ``p`` the point the fit pivots about."""
 
     profiles: EdgeProfiles
-    jitter_px: float
-    jitter_fixed_scale_px: float
+    placement: PlacementError
     slope_corrections: tuple[float, float] = (0.0, 0.0)
     """What the profiles changed the lattice's slopes by: (vertical edge ``dx/dy``,
     horizontal edge ``dy/dx``; :mod:`calibration.edge_slope`)."""
-    placement: PlacementError = PlacementError.none()
+
+    @property
+    def jitter_px(self) -> float:
+        return self.placement.jitter_px()
+
+    @property
+    def jitter_fixed_scale_px(self) -> float:
+        return self.placement.jitter_px(scale_known=True)
 
 
 def half_edge_profiles(
@@ -117,7 +123,7 @@ def half_edge_profiles(
     """
     height, width = image.shape
     radius = window.plateau_px
-    none = PlacedProfiles(EdgeProfiles.empty(), 0.0, 0.0)
+    none = PlacedProfiles(EdgeProfiles.empty(), PlacementError.none())
     ii, jj = image_grid.indices_in(width, height, margin_px=radius + 1.0)
     if ii.size == 0:
         return none
@@ -191,10 +197,8 @@ def half_edge_profiles(
     )
     return PlacedProfiles(
         EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
-        placement.jitter_px(),
-        placement.jitter_px(scale_known=True),
-        (corrections[0], corrections[1]),
         placement,
+        (corrections[0], corrections[1]),
     )
 
 

@@ -18,7 +18,7 @@ Eq. 3 (mean over adjacent pairs along x) is reported beside it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -346,21 +346,19 @@ def analyze_frame(
         }
         if wanted:
             break
+    starts = [(m.lens_i, m.lens_j, m.x, m.y) for members in wanted.values() for m in members]
     # the reference corner's edges are split by its gap Cr, imaged at the frame's rough Q
     gap_px = _reference_gap_px(rough, ctx, object_distance_mm)
-    meas = []
-    for key, members in wanted.items():
-        options = ctx.options
-        if key == (2, 0) and gap_px > 0:
-            options = replace(options, block_offset_expected_px=gap_px)
-        meas += measure_corners(
-            frame,
-            [(m.lens_i, m.lens_j, m.x, m.y) for m in members],
-            ctx.image_grid,
-            interior_radius_px=ctx.interior_radius_px,
-            options=options,
-            lens_grid=ctx.lens_grid,
-        )
+    gaps = [gap_px if key == (2, 0) else 0.0 for key, members in wanted.items() for _ in members]
+    meas = measure_corners(
+        frame,
+        starts,
+        ctx.image_grid,
+        interior_radius_px=ctx.interior_radius_px,
+        options=ctx.options,
+        lens_grid=ctx.lens_grid,
+        gaps_px=gaps,
+    )
     rejected: dict[str, int] = {}
     for m in meas:
         if not m.ok:
@@ -431,8 +429,6 @@ def _edge_spread(
     return frame_esf(
         placed.profiles,
         start_width_px=fit.edge_width_px,
-        jitter_px=placed.jitter_px,
-        jitter_fixed_scale_px=placed.jitter_fixed_scale_px,
         placement=placed.placement,
         max_flat_px=half_px - TAIL_SAMPLES,
         drift=not window.flat_field.active,
