@@ -20,7 +20,7 @@ systematics of the camera fitted either way) is in :mod:`calibration.two_corners
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -286,19 +286,39 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
     }
 
 
+def clipped_edges_note(frames: Sequence[FrameSummary], max_count: int | None) -> str:
+    """What the sensor's clip took from the blur ("" when nothing): how many frames had
+    half-edges left out because their bright side reached full scale."""
+    per_frame = [
+        sum(int((c or {}).get("clipped_half_edges") or 0) for c in (fs.standard, fs.reference))
+        for fs in frames
+    ]
+    hit = [n for n in per_frame if n > 0]
+    if not hit:
+        return ""
+    scale = f" ({max_count} counts)" if max_count is not None else ""
+    return (
+        f"the sensor clipped the board's bright squares at full scale{scale} in {len(hit)} of "
+        f"{len(frames)} frames: {sum(hit)} half-edges were left out of the blur (a clipped "
+        "edge reads sharper); lower the exposure or the gain and record the sweep again"
+    )
+
+
 def _defocus_or_raise(
     observations: list[EdgeObservation],
     g: SweepGeometry,
     partial: dict[str, Any],
     start: DefocusFit | None = None,
+    *,
+    hint: str = "",
 ) -> DefocusFit:
     """The whole-sweep defocus fit (from ``start``'s parameters when given);
-    :class:`FocusNotDeterminedError` with ``partial``."""
+    :class:`FocusNotDeterminedError` with ``partial`` (``hint`` appended to its message)."""
     theta0 = None if start is None else (start.Q0, start.kappa, start.shape_box)
     try:
         defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px, start=theta0)
     except DefocusNotDetermined as exc:
-        partial["error"] = f"focus plane not determined: {exc}"
+        partial["error"] = f"focus plane not determined: {exc}" + (f"; {hint}" if hint else "")
         raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
     partial["focus"] = {"defocus_model": _defocus_dict(defocus)}
     return defocus
@@ -398,6 +418,9 @@ def combine(
             "no magnification, so the main-lens focal length and the rail zero come from "
             "their data-sheet values and tolerances; Lr, Lp and La are not available"
         )
+    clip_note = clipped_edges_note(frames, g.max_count)
+    if clip_note:
+        warnings.append(clip_note)
     inv_m, inv_m_se = inverse_magnification(frames, g)
     observations = _observations(frames, g)
     # the defocus is set by the camera's Q(u), which the calibrated camera gives more precisely
@@ -406,7 +429,7 @@ def combine(
     # then the defocus on the camera's Q(u), then the camera with the defocus's Q0
     rough = rough_focus(observations)
     if not np.isfinite(rough[0]):
-        _defocus_or_raise(observations, g, partial)  # says why the blur cannot be fitted
+        _defocus_or_raise(observations, g, partial, hint=clip_note)  # says why not
     cam, _, _ = _camera_or_raise(rough, arr, inv_m, inv_m_se, grid, g, partial)
     rails = np.array([fs.rail_mm for fs in frames])
     if n_ref:
@@ -419,7 +442,7 @@ def combine(
     start: DefocusFit | None = None
     for _ in range(2):
         on_camera = _on_camera(observations, frames, q_model)
-        defocus = _defocus_or_raise(on_camera, g, partial, start=start)
+        defocus = _defocus_or_raise(on_camera, g, partial, start=start, hint=clip_note)
         focus = (defocus.Q0, defocus.Q0_se, defocus.kappa)
         cam, measurements, shading = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
         if n_ref:

@@ -35,12 +35,13 @@ smoothed over all frames (:meth:`calibration.edge_spread.BinnedEsf.replaced`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .edge_slope import refine_slope
-from .edge_spread import EdgeProfiles
+from .edge_slope import MIN_CONTRAST, refine_slope, typical_contrast
+from .edge_spread import TAIL_SAMPLES, EdgeProfiles
 from .flat_field import FlatField
 from .lens_grid import LensGrid
 from .placement_error import PlacementError
@@ -73,13 +74,15 @@ class ProfileWindow:
     the corner along the edge, ``reach_px`` the largest, ``half_px`` the
     profile's half length (``2·half_px + 1`` samples); ``flat_field`` the white image's
     smooth shading every sample is divided by (:class:`~calibration.flat_field.FlatField`;
-    none by default)."""
+    none by default); ``clip_count`` the count at which the sensor clips (its full scale):
+    a profile with a sample there is not cut, its edge's shape is lost (none by default)."""
 
     plateau_px: float
     clearance_px: float
     reach_px: float
     half_px: int = 6
     flat_field: FlatField = FlatField()
+    clip_count: float = float("inf")
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,8 @@ class PlacedProfiles:
     slope_corrections: tuple[float, float] = (0.0, 0.0)
     """What the profiles changed the lattice's slopes by: (vertical edge ``dx/dy``,
     horizontal edge ``dy/dx``; :mod:`calibration.edge_slope`)."""
+    clipped_half_edges: int = 0
+    """Half-edges (micro-image and half) left out because the sensor clipped them."""
 
     @property
     def jitter_px(self) -> float:
@@ -144,18 +149,17 @@ def half_edge_profiles(
     corrections = [0.0, 0.0]
     # the white image's shading gradient at each micro-image centre (the flat field's tilt)
     tilt = window.flat_field.gradients((cx, cy), (mx, my))
-    for axis in (0, 1):  # 0: the vertical edge (row profiles), 1: the horizontal edge (columns)
-        if axis == 0:
-            cut = _cut(
-                image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False, tilt
-            )
-        else:
-            cut = _cut(
-                image, cy, cx, sy, sx, lattice.slope_h, lattice.half_px[1], window, True, tilt[::-1]
-            )
+    cuts = (
+        _cut(image, cx, cy, sx, sy, lattice.slope_v, lattice.half_px[0], window, False, tilt),
+        _cut(image, cy, cx, sy, sx, lattice.slope_h, lattice.half_px[1], window, True, tilt[::-1]),
+    )
+    clipped = 0
+    if np.isfinite(window.clip_count):
+        cuts, clipped = _unclipped(cuts, window.clip_count)
+    for axis, cut in enumerate(cuts):  # 0: the vertical edge (row profiles), 1: the horizontal
         if cut is None:
             continue
-        x, y, lens, half, sign, along = cut
+        x, y, lens, half, sign, along = cut[:6]
         # the edge's slope from every profile across it (the lattice's is a median of a few
         # micro-images' own: :mod:`calibration.edge_slope`)
         lever_along = sign * along
@@ -175,7 +179,9 @@ def half_edge_profiles(
         grad[:, 3 + axis] = np.where(half == 1, -1.0, 1.0)
         gradients.append(-sign[:, None] * grad)
     if not parts:
-        return none
+        return PlacedProfiles(
+            EdgeProfiles.empty(), PlacementError.none(), clipped_half_edges=clipped
+        )
     x = np.concatenate([p[0] for p in parts])
     y = np.concatenate([p[1] for p in parts])
     label = np.concatenate([p[2] for p in parts])
@@ -199,7 +205,25 @@ def half_edge_profiles(
         EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
         placement,
         (corrections[0], corrections[1]),
+        clipped,
     )
+
+
+class _Cut(NamedTuple):
+    """One edge's profiles (see :func:`_cut`); ``raw_top`` each profile's largest raw
+    count, ``raw_ends`` the mean raw counts of its first and last ``TAIL_SAMPLES``."""
+
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    lens: NDArray[np.int64]
+    half: NDArray[np.int64]
+    sign: NDArray[np.float64]
+    along: NDArray[np.float64]
+    raw_top: NDArray[np.float64]
+    raw_ends: NDArray[np.float64]
+
+    def subset(self, keep: NDArray[np.bool_]) -> _Cut | None:
+        return _Cut._make(field[keep] for field in self) if keep.any() else None
 
 
 def _cut(
@@ -213,17 +237,7 @@ def _cut(
     window: ProfileWindow,
     transposed: bool,
     gradient: tuple[NDArray[np.float64], NDArray[np.float64]],
-) -> (
-    tuple[
-        NDArray[np.float64],
-        NDArray[np.float64],
-        NDArray[np.int64],
-        NDArray[np.int64],
-        NDArray[np.float64],
-        NDArray[np.float64],
-    ]
-    | None
-):
+) -> _Cut | None:
     """Profiles across one edge of every micro-image (coordinates named across/along the edge).
 
     For the vertical edge ``across`` is x and ``along`` is y (row profiles);
@@ -231,7 +245,8 @@ def _cut(
     signed distances from the edge, their values, the micro-image (index into
     the inputs), the half (0 before the corner along the edge, 1 after), the
     sign that made the dark side negative and each profile's distance along the edge
-    from its micro-image's corner image.
+    from its micro-image's corner image, and its raw counts' top and ends (none when no
+    profile can be cut).
     """
     height, width = image.shape
     r = window.plateau_px
@@ -271,6 +286,10 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
+    raw_top = values.max(axis=1)
+    raw_ends = np.stack(
+        [values[:, :TAIL_SAMPLES].mean(axis=1), values[:, -TAIL_SAMPLES:].mean(axis=1)], axis=1
+    )
     if window.flat_field.active:
         # flat field: the white image's smooth shading about the micro-image centre
         da = across_idx - centre_across[lens][:, None]
@@ -285,11 +304,57 @@ def _cut(
     _, group = np.unique(key, return_inverse=True)
     total = np.bincount(group, rise)
     sign = np.where(total[group] >= 0, 1.0, -1.0)
-    return (
+    return _Cut(
         np.asarray(sign[:, None] * x, dtype=np.float64),
         values,
         lens,
         np.asarray(half, dtype=np.int64),
         np.asarray(sign, dtype=np.float64),
         np.asarray(dist[lens, line], dtype=np.float64),
+        raw_top,
+        raw_ends,
     )
+
+
+def _unclipped(
+    cuts: tuple[_Cut | None, _Cut | None], clip_count: float
+) -> tuple[tuple[_Cut | None, _Cut | None], int]:
+    """The profiles of both edges that belong to a half-edge (one per micro-image, edge and
+    half) the sensor's clip (raw counts) left whole and that shows an edge; and how many
+    half-edges were clipped.
+
+    A clipped sample flattens the edge's bright side, and the profile reads sharper (as in
+    ISO 12233, a clipped edge is not measured). A half-edge goes whole when one of its
+    samples reaches the clip: dropping single profiles would keep, where the bright level
+    is just below the clip, those whose noise fell low. Of the rest, only half-edges whose
+    contrast is at least :data:`~calibration.edge_slope.MIN_CONTRAST` of the typical
+    contrast of all of them, or of the clipped ones' median contrast if that is larger,
+    are kept: when every edge is clipped, what is left (micro-images that show no edge,
+    however many, on either edge) must not stand in for it.
+    """
+    present = [(axis, c) for axis, c in enumerate(cuts) if c is not None]
+    if not present:
+        return cuts, 0
+    key = np.concatenate([c.lens * 4 + 2 * axis + c.half for axis, c in present])
+    top_row = np.concatenate([c.raw_top for _, c in present])
+    ends = np.concatenate([c.raw_ends for _, c in present])
+    _, group = np.unique(key, return_inverse=True)
+    n_groups = int(group.max()) + 1
+    top = np.full(n_groups, -np.inf)
+    np.maximum.at(top, group, top_row)
+    clipped = top >= clip_count
+    if not clipped.any():
+        return cuts, 0
+    rows = np.bincount(group, minlength=n_groups)
+    first = np.bincount(group, ends[:, 0], n_groups) / rows
+    last = np.bincount(group, ends[:, 1], n_groups) / rows
+    contrast = np.abs(last - first)
+    # a clipped edge shows less contrast than it has: the least a real edge shows
+    reference = max(typical_contrast(contrast), float(np.median(contrast[clipped])))
+    keep = ((contrast >= MIN_CONTRAST * reference) & ~clipped)[group]
+    kept: list[_Cut | None] = [None, None]
+    start = 0
+    for axis, c in present:
+        kept[axis] = c.subset(keep[start : start + c.lens.size])
+        start += c.lens.size
+    return (kept[0], kept[1]), int(clipped.sum())

@@ -73,6 +73,8 @@ class CornerFit:
     esf: BinnedEsf | None = None
     lattice: CornerLattice | None = None
     note: str = ""
+    clipped_half_edges: int = 0
+    """Half-edges whose edge spread the sensor clipped (left out of :attr:`esf`)."""
 
     @property
     def n_used(self) -> int:
@@ -91,6 +93,7 @@ class CornerFit:
             "residual_rms_px": self.residual_rms_px,
             "size_px": self.size_px,
             "edge_width_px": self.edge_width_px,
+            "clipped_half_edges": self.clipped_half_edges,
             "note": self.note,
         }
 
@@ -423,9 +426,11 @@ def _edge_spread(
         reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
         half_px=half_px,
         flat_field=opts.flat_field,
+        clip_count=opts.clip_count,
     )
     assert fit.lattice is not None
     placed = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)
+    fit.clipped_half_edges = placed.clipped_half_edges
     return frame_esf(
         placed.profiles,
         start_width_px=fit.edge_width_px,

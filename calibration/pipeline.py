@@ -105,6 +105,10 @@ class FrameAnalyzer:
             white, grid.image_grid, background=grid.background, lens_grid=grid.lens_grid
         )
         options = options or CalibrationOptions()
+        if geometry.max_count is not None:
+            # edge spreads only from unclipped profiles
+            corner = dataclasses.replace(options.corner, clip_count=float(geometry.max_count))
+            options = dataclasses.replace(options, corner=corner)
         if np.isfinite(shading.plateau_fraction):
             # edge spreads only where the whole microlens aperture is seen (the white plateau)
             corner = dataclasses.replace(

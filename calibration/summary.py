@@ -75,6 +75,8 @@ class SweepGeometry:
     main_focal_tolerance_mm: float | None = None
     mla_focal_tolerance_mm: float | None = None
     zero_object_distance_tolerance_mm: float | None = None
+    max_count: int | None = None
+    """The sensor's full scale (counts, ``2**bit_depth − 1``): a pixel there is clipped."""
 
     @classmethod
     def from_manifest(cls, m: SweepManifest) -> SweepGeometry:
@@ -92,6 +94,7 @@ class SweepGeometry:
             board=Board(square_mm=m.board.square_mm, reference_gap_mm=m.board.reference_gap_mm),
             zero_object_distance_mm=m.rail.zero_object_distance_mm,
             direction=m.rail.direction,
+            max_count=m.camera.max_count,
         )
 
     def tolerances(self) -> dict[str, float]:

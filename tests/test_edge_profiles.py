@@ -10,6 +10,8 @@ spread over the profiles, not their common shift.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.special import ndtr
@@ -314,3 +316,58 @@ def test_dim_profiles_keep_their_weights_through_json() -> None:
         moved = again.replaced(error, 1e-4)
         assert np.all(np.isfinite(moved.x)) and np.all(np.isfinite(moved.value))
     np.testing.assert_allclose(again.replaced(0.0, 0.0).value, esf.value, atol=1e-4)
+
+
+def _brightened(frame: np.ndarray, image: LensGrid, where: np.ndarray, clip: float) -> np.ndarray:
+    """``frame`` 1.3x brighter in the micro-images ``where`` (by centre), clipped at ``clip``."""
+    yy, xx = np.mgrid[0 : frame.shape[0], 0 : frame.shape[1]].astype(np.float64)
+    cx, _ = image.centre(*image.nearest(xx, yy))
+    bright = where(cx)
+    return np.where(bright, np.minimum(frame * 1.3, clip), frame)
+
+
+def test_clipped_half_edges_are_left_out_whole() -> None:
+    frame, lens, image, coef = _frame()
+    lattice = CornerLattice(coef=coef, covariance=np.zeros((3, 3)))
+    whole = half_edge_profiles(frame, lattice, lens, image, _window())
+    # a clip no sample reaches changes nothing
+    high = dataclasses.replace(_window(), clip_count=float(frame.max()) + 1.0)
+    same = half_edge_profiles(frame, lattice, lens, image, high)
+    assert same.clipped_half_edges == 0
+    np.testing.assert_array_equal(same.profiles.y, whole.profiles.y)
+    # the micro-images right of x = 400 overexposed: their light squares clip at 1000
+    clip = 1000.0
+    bright = _brightened(frame, image, lambda cx: cx > 400.0, clip)
+    window = dataclasses.replace(_window(), clip_count=clip)
+    placed = half_edge_profiles(bright, lattice, lens, image, window)
+    kept = placed.profiles
+    assert kept.y.max() < clip
+    lost = (int(whole.profiles.block.max()) + 1) - (int(kept.block.max()) + 1)
+    assert placed.clipped_half_edges == lost > 10
+    # what is left are the other micro-images' profiles, as they were
+    original = {row.tobytes() for row in whole.profiles.y}
+    assert all(row.tobytes() in original for row in kept.y)
+    assert 0.3 * whole.profiles.count < kept.count < 0.8 * whole.profiles.count
+    esf = frame_esf(kept, start_width_px=SIGMA)
+    assert esf is not None
+    inside = np.abs(esf.x) < 4.0
+    np.testing.assert_allclose(esf.value[inside], ndtr(esf.x[inside] / SIGMA), atol=0.006)
+
+
+def test_when_every_edge_clips_no_edge_free_micro_image_stands_in() -> None:
+    """Every lit micro-image clipped; those left of x = 250 show no board (a flat dark level,
+    as outside the window a renderer drew): none of their profiles is kept."""
+    frame, lens, image, coef = _frame()
+    yy, xx = np.mgrid[0 : frame.shape[0], 0 : frame.shape[1]].astype(np.float64)
+    cx, _ = image.centre(*image.nearest(xx, yy))
+    frame = np.where(cx < 250.0, DARK + np.random.default_rng(5).normal(0, 2, frame.shape), frame)
+    clip = 1000.0
+    bright = _brightened(frame, image, lambda cx: cx >= 250.0, clip)
+    lattice = CornerLattice(coef=coef, covariance=np.zeros((3, 3)))
+    window = dataclasses.replace(_window(), clip_count=clip)
+    placed = half_edge_profiles(bright, lattice, lens, image, window)
+    assert placed.clipped_half_edges > 20
+    assert placed.profiles.count == 0
+    # without the clip the edge-free micro-images would be cut like any other
+    unclipped = half_edge_profiles(frame, lattice, lens, image, _window())
+    assert unclipped.profiles.count > 0

@@ -473,6 +473,28 @@ def test_sensor_noise_follows_shot_and_read_noise() -> None:
     assert counts.var() == pytest.approx((1000 + 100) * gain**2 + 1 / 12, rel=0.03)
     bright = expose(np.full((10, 10), 2.0, np.float32), sensor, np.random.default_rng(7))
     assert bright.max() == 4095  # clipped to the bit depth
+    # exposure scales the light before the noise: twice the electrons, the same gain
+    quarter = np.full((400, 400), 0.25, dtype=np.float32)
+    doubled = expose(quarter, sensor, np.random.default_rng(8), exposure=2.0).astype(np.float64)
+    assert doubled.mean() == pytest.approx(64 + 1000 * gain, rel=2e-3)
+    assert doubled.var() == pytest.approx((1000 + 100) * gain**2 + 1 / 12, rel=0.03)
+
+
+def test_exposure_brightens_the_frames_not_the_white_image(tmp_path: Path) -> None:
+    plain = _render(tmp_path, "plain", "--seed", "4")
+    bright = _render(tmp_path, "bright", "--seed", "4", "--exposure", "1.5")
+    assert json.loads((bright / "truth.json").read_text())["render"]["noise"][
+        "frame_exposure"
+    ] == pytest.approx(1.5)
+    white = [cv2.imread(str(d / "white.png"), cv2.IMREAD_UNCHANGED) for d in (plain, bright)]
+    np.testing.assert_array_equal(white[0], white[1])
+    frames = [
+        cv2.imread(str(d / "frames" / "0001.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        for d in (plain, bright)
+    ]
+    lit = frames[0] > 0.5 * frames[0].max()
+    assert np.count_nonzero(frames[0] >= 4095) == 0
+    assert np.count_nonzero(frames[1][lit] >= 4095) > 0.3 * np.count_nonzero(lit)
 
 
 def _render(tmp_path: Path, name: str, *extra: str) -> Path:

@@ -109,6 +109,11 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--photons", type=float, help="electrons at full light (signal 1)")
     g.add_argument("--read-noise", dest="read_noise_e", type=float, help="e- rms")
     g.add_argument("--black-level", dest="black_level", type=int, help="counts")
+    g.add_argument(
+        "--exposure",
+        type=float,
+        help="board frames' light relative to the white image's (> 1.05 saturates)",
+    )
     g = p.add_argument_group("data sheet in the manifest (default: the truth)")
     g.add_argument("--manifest-main-focal-mm", dest="manifest_main_focal_mm", type=float)
     g.add_argument("--manifest-mla-focal-mm", dest="manifest_mla_focal_mm", type=float)

@@ -148,6 +148,7 @@ def truth(spec: SweepSpec) -> dict[str, Any]:
                 "photons_full_light": spec.sensor.photons,
                 "read_noise_e": spec.sensor.read_noise_e,
                 "black_level": spec.sensor.black_level,
+                "frame_exposure": spec.sensor.exposure,
                 "bit_depth": spec.sensor.bit_depth,
             },
         },

@@ -6,6 +6,8 @@ and maps to the top of the count range: ``counts = black + e·(2^bits - 1 - blac
 so the brightest board (reflectance 0.95) stays about 5 % below saturation.
 Electrons are Poisson (shot noise) plus Gaussian read noise (σ in e-); counts
 are rounded, clipped to ``[0, 2^bits - 1]`` and right-aligned in uint16.
+``exposure`` multiplies the board frames' light (not the white image's, which a
+lab exposes on its own): above about 1.05 the bright squares saturate.
 """
 
 from __future__ import annotations
@@ -22,12 +24,15 @@ class SensorSettings:
     photons: float = 20000.0
     read_noise_e: float = 5.0
     black_level: int = 0
+    exposure: float = 1.0
 
     def check(self) -> None:
         if self.bit_depth not in (8, 10, 12, 14, 16):
             raise ValueError(f"bit depth must be 8, 10, 12, 14 or 16 (got {self.bit_depth})")
         if not self.photons > 0:
             raise ValueError(f"photons must be > 0 (got {self.photons:g})")
+        if not self.exposure > 0:
+            raise ValueError(f"exposure must be > 0 (got {self.exposure:g})")
         if self.read_noise_e < 0:
             raise ValueError(f"read noise must be >= 0 e- (got {self.read_noise_e:g})")
         full = (1 << self.bit_depth) - 1
@@ -44,10 +49,17 @@ class SensorSettings:
 
 
 def expose(
-    signal: npt.NDArray[np.float32], sensor: SensorSettings, rng: np.random.Generator
+    signal: npt.NDArray[np.float32],
+    sensor: SensorSettings,
+    rng: np.random.Generator,
+    *,
+    exposure: float = 1.0,
 ) -> npt.NDArray[np.uint16]:
-    """Counts (uint16, right-aligned) of a frame whose noiseless signal is ``signal``."""
-    mean_electrons = np.clip(signal.astype(np.float64), 0.0, None) * sensor.photons
+    """Counts (uint16, right-aligned) of a frame whose noiseless signal is ``signal``.
+
+    ``exposure`` scales the light (electrons) before the noise, not the count scale.
+    """
+    mean_electrons = np.clip(signal.astype(np.float64), 0.0, None) * (sensor.photons * exposure)
     electrons = rng.poisson(mean_electrons).astype(np.float64)
     if sensor.read_noise_e > 0:
         electrons += rng.normal(0.0, sensor.read_noise_e, size=signal.shape)

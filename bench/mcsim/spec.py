@@ -15,7 +15,8 @@ Option names (the CLI's ``--flag`` in brackets):
 * sampling: ``rays``, ``subpixel``, ``jitter``, ``white_rays``,
   ``airy_wavelength_um``, ``spherical_mm``, ``corners`` (standard|both),
   ``margin`` (micro-images beyond the predicted spread), ``seed``;
-* sensor: ``bit_depth``, ``photons``, ``read_noise_e``, ``black_level``;
+* sensor: ``bit_depth``, ``photons``, ``read_noise_e``, ``black_level``,
+  ``exposure`` (the board frames' light relative to the white image's);
 * data sheet written to the manifest (the render uses the truth):
   ``manifest_main_focal_mm``, ``manifest_mla_focal_mm``, ``manifest_rail_zero_mm``,
   ``manifest_tolerances`` (F, f, rail-zero tolerances in mm).
@@ -62,6 +63,7 @@ DEFAULTS: dict[str, Any] = {
     "photons": 20000.0,
     "read_noise_e": 5.0,
     "black_level": 0,
+    "exposure": 1.0,
     "manifest_main_focal_mm": None,
     "manifest_mla_focal_mm": None,
     "manifest_rail_zero_mm": None,
@@ -224,7 +226,11 @@ def build_spec(**options: Any) -> SweepSpec:
         spherical_mm=float(o["spherical_mm"]),
     )
     sensor = SensorSettings(
-        int(o["bit_depth"]), float(o["photons"]), float(o["read_noise_e"]), int(o["black_level"])
+        int(o["bit_depth"]),
+        float(o["photons"]),
+        float(o["read_noise_e"]),
+        int(o["black_level"]),
+        float(o["exposure"]),
     )
     try:
         sensor.check()
