@@ -304,6 +304,26 @@ def clipped_edges_note(frames: Sequence[FrameSummary], max_count: int | None) ->
     )
 
 
+WHITE_CLIPPED_WARNING = 1e-3
+"""A white image with more than this fraction of its lit pixels at full scale is reported:
+its micro-images' centres and shading (so the pitch, and b, and the edges' flat field)
+are then measured on clipped discs."""
+
+
+def white_clipped_note(grid: MlaGrid, max_count: int | None) -> str:
+    """A warning when the white image is clipped ("" otherwise)."""
+    fraction = grid.white_clipped_fraction
+    if not fraction > WHITE_CLIPPED_WARNING:
+        return ""
+    scale = f" ({max_count} counts)" if max_count is not None else ""
+    return (
+        f"the white image is clipped: {100 * fraction:.1f} % of its lit pixels at full "
+        f"scale{scale}; the micro-images' centres and shading, and so the pitch, b and the "
+        "edges' flat field, are measured on clipped discs (b -0.19 % seen with 57 % "
+        "clipped): record the white image with a lower exposure"
+    )
+
+
 def _defocus_or_raise(
     observations: list[EdgeObservation],
     g: SweepGeometry,
@@ -419,8 +439,9 @@ def combine(
             "their data-sheet values and tolerances; Lr, Lp and La are not available"
         )
     clip_note = clipped_edges_note(frames, g.max_count)
-    if clip_note:
-        warnings.append(clip_note)
+    for note in (white_clipped_note(grid, g.max_count), clip_note):
+        if note:
+            warnings.append(note)
     inv_m, inv_m_se = inverse_magnification(frames, g)
     observations = _observations(frames, g)
     # the defocus is set by the camera's Q(u), which the calibrated camera gives more precisely

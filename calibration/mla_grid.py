@@ -146,6 +146,8 @@ class MlaGrid:
     residual_y: NDArray[np.float64] = field(repr=False)
     lens_status: NDArray[np.int8] = field(repr=False)
     shading: WhiteShading | None = None
+    white_clipped_fraction: float = 0.0
+    """The fraction of the white image's lit pixels at the sensor's full scale."""
 
     @property
     def residual_px(self) -> NDArray[np.float64]:
@@ -203,6 +205,7 @@ class MlaGrid:
             "iterations": self.iterations,
             "background": self.background,
             "shading": None if self.shading is None else self.shading.to_dict(),
+            "white_clipped_fraction": self.white_clipped_fraction,
         }
         if include_lenses:
             out["lenses"] = {

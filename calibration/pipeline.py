@@ -31,7 +31,7 @@ from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
-from .shading import measure_shading
+from .shading import clipped_fraction, measure_shading
 from .summary import (
     CalibrationError,
     CalibrationOptions,
@@ -120,7 +120,9 @@ class FrameAnalyzer:
             # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
             corner = dataclasses.replace(options.corner, flat_field=flat_field)
             options = dataclasses.replace(options, corner=corner)
-        return cls(geometry, dataclasses.replace(grid, shading=shading), options)
+        clipped = 0.0 if geometry.max_count is None else clipped_fraction(white, geometry.max_count)
+        grid = dataclasses.replace(grid, shading=shading, white_clipped_fraction=clipped)
+        return cls(geometry, grid, options)
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)

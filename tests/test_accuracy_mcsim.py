@@ -109,6 +109,24 @@ def test_clipped_edges_are_left_out_of_the_blur_and_reported(tmp_path: Path) -> 
     assert len(notes) == 1 and "4095" in notes[0] and "lower the exposure" in notes[0]
 
 
+def test_a_clipped_white_image_is_reported(tmp_path: Path) -> None:
+    """A white image 10 % brighter than full light: half its lit pixels clip, the discs'
+    centres move (the pitch reads 6.7e-5 low, b -0.19 %): the result must say so."""
+    sweep = render_mcsim(
+        tmp_path / "white",
+        frames=31,
+        step_mm=2,
+        seed=5,
+        extra=("--white-exposure", "1.1", "--start-mm", "20"),
+    )
+    result, _ = calibrate(sweep)
+    assert 0.3 < result["mla"]["white_clipped_fraction"] < 0.8
+    notes = [w for w in result["warnings"] if "white image is clipped" in w]
+    assert len(notes) == 1 and "lower exposure" in notes[0]
+    # the board frames themselves are not clipped
+    assert not [w for w in result["warnings"] if "half-edges were left out" in w]
+
+
 def test_a_sweep_clipped_everywhere_has_no_focus_plane(tmp_path: Path) -> None:
     """Board frames 1.5x full light: every edge is clipped at a third of its contrast.
     This sweep once gave focus +3.5 mm, a +0.84 % (at 3x: -5.1 +- 1.7 mm); now the focus

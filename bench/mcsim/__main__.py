@@ -112,7 +112,13 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--exposure",
         type=float,
-        help="board frames' light relative to the white image's (> 1.05 saturates)",
+        help="board frames' light (full light = 1; > 1.05 saturates)",
+    )
+    g.add_argument(
+        "--white-exposure",
+        dest="white_exposure",
+        type=float,
+        help="the white image's light (full light = 1; > 1 saturates)",
     )
     g = p.add_argument_group("data sheet in the manifest (default: the truth)")
     g.add_argument("--manifest-main-focal-mm", dest="manifest_main_focal_mm", type=float)

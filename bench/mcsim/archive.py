@@ -149,6 +149,7 @@ def truth(spec: SweepSpec) -> dict[str, Any]:
                 "read_noise_e": spec.sensor.read_noise_e,
                 "black_level": spec.sensor.black_level,
                 "frame_exposure": spec.sensor.exposure,
+                "white_exposure": spec.sensor.white_exposure,
                 "bit_depth": spec.sensor.bit_depth,
             },
         },

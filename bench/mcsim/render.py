@@ -99,7 +99,7 @@ def render_image(spec: SweepSpec, index: int) -> tuple[npt.NDArray[np.uint16], R
         stats = RenderStats(WHITE, None, rays, cam.width * cam.height, 0)
     else:
         signal, stats = frame_signal(spec, index, rng)
-    exposure = 1.0 if index == WHITE else spec.sensor.exposure
+    exposure = spec.sensor.white_exposure if index == WHITE else spec.sensor.exposure
     counts = expose(signal, spec.sensor, rng, exposure=exposure)
     stats.seconds = time.perf_counter() - wall
     stats.cpu_seconds = time.process_time() - cpu

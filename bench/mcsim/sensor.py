@@ -6,8 +6,9 @@ and maps to the top of the count range: ``counts = black + e·(2^bits - 1 - blac
 so the brightest board (reflectance 0.95) stays about 5 % below saturation.
 Electrons are Poisson (shot noise) plus Gaussian read noise (σ in e-); counts
 are rounded, clipped to ``[0, 2^bits - 1]`` and right-aligned in uint16.
-``exposure`` multiplies the board frames' light (not the white image's, which a
-lab exposes on its own): above about 1.05 the bright squares saturate.
+``exposure`` multiplies the board frames' light and ``white_exposure`` the white
+image's (a lab exposes it on its own): above about 1.05 the bright squares saturate,
+above 1 the white image's brightest micro-images.
 """
 
 from __future__ import annotations
@@ -25,14 +26,17 @@ class SensorSettings:
     read_noise_e: float = 5.0
     black_level: int = 0
     exposure: float = 1.0
+    white_exposure: float = 1.0
 
     def check(self) -> None:
         if self.bit_depth not in (8, 10, 12, 14, 16):
             raise ValueError(f"bit depth must be 8, 10, 12, 14 or 16 (got {self.bit_depth})")
         if not self.photons > 0:
             raise ValueError(f"photons must be > 0 (got {self.photons:g})")
-        if not self.exposure > 0:
-            raise ValueError(f"exposure must be > 0 (got {self.exposure:g})")
+        if not (self.exposure > 0 and self.white_exposure > 0):
+            raise ValueError(
+                f"exposures must be > 0 (got {self.exposure:g}, white {self.white_exposure:g})"
+            )
         if self.read_noise_e < 0:
             raise ValueError(f"read noise must be >= 0 e- (got {self.read_noise_e:g})")
         full = (1 << self.bit_depth) - 1

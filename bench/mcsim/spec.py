@@ -16,7 +16,7 @@ Option names (the CLI's ``--flag`` in brackets):
   ``airy_wavelength_um``, ``spherical_mm``, ``corners`` (standard|both),
   ``margin`` (micro-images beyond the predicted spread), ``seed``;
 * sensor: ``bit_depth``, ``photons``, ``read_noise_e``, ``black_level``,
-  ``exposure`` (the board frames' light relative to the white image's);
+  ``exposure`` (the board frames' light), ``white_exposure`` (the white image's);
 * data sheet written to the manifest (the render uses the truth):
   ``manifest_main_focal_mm``, ``manifest_mla_focal_mm``, ``manifest_rail_zero_mm``,
   ``manifest_tolerances`` (F, f, rail-zero tolerances in mm).
@@ -64,6 +64,7 @@ DEFAULTS: dict[str, Any] = {
     "read_noise_e": 5.0,
     "black_level": 0,
     "exposure": 1.0,
+    "white_exposure": 1.0,
     "manifest_main_focal_mm": None,
     "manifest_mla_focal_mm": None,
     "manifest_rail_zero_mm": None,
@@ -231,6 +232,7 @@ def build_spec(**options: Any) -> SweepSpec:
         float(o["read_noise_e"]),
         int(o["black_level"]),
         float(o["exposure"]),
+        float(o["white_exposure"]),
     )
     try:
         sensor.check()
