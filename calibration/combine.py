@@ -286,6 +286,40 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
     }
 
 
+def _why_no_corners(frames: Sequence[FrameSummary]) -> str:
+    """The likely reason a sweep's frames show no measurable board corner: corners seen but
+    too near the micro-images' rims to be measured (small micro-images, large Q), or no
+    board at all."""
+    few = sum(
+        1
+        for fs in frames
+        if not np.isfinite(fs.Q)
+        and any(
+            str((c or {}).get("note", "")).startswith("only ") for c in (fs.standard, fs.reference)
+        )
+    )
+    reasons: dict[str, int] = {}
+    for fs in frames:
+        for reason, n in fs.rejected.items():
+            if reason:
+                reasons[reason] = reasons.get(reason, 0) + n
+    top = max(reasons, key=lambda k: reasons[k]) if reasons else ""
+    rim = "micro-image interior" in top and reasons[top] >= 3 * len(frames)
+    if 2 * few < len(frames) and not rim:
+        return "is the board aligned with the lens axis and in view?"
+    per_frame = reasons[top] / len(frames) if top else 0.0
+    seen = (
+        f"in {few} frames the corners were identified but measured in fewer than 3 "
+        f"micro-images; {per_frame:.0f} micro-images per frame were rejected as '{top}'"
+        if 2 * few >= len(frames)
+        else f"{per_frame:.0f} micro-images per frame showed a corner but were rejected as '{top}'"
+    )
+    return (
+        f"{seen}: the micro-images are too small for a corner's "
+        "four half-edges at this Q (README, Known limits)"
+    )
+
+
 def clipped_edges_note(frames: Sequence[FrameSummary], max_count: int | None) -> str:
     """What the sensor's clip took from the blur ("" when nothing): how many frames had
     half-edges left out because their bright side reached full scale."""
@@ -429,7 +463,7 @@ def combine(
     if good.sum() < opts.min_frames:
         raise CalibrationError(
             f"a board corner was found in only {int(good.sum())} of {len(frames)} frames "
-            f"(need {opts.min_frames}): is the board aligned with the lens axis and in view?",
+            f"(need {opts.min_frames}): {_why_no_corners(frames)}",
             _json_clean(partial),
         )
     if n_ref == 0:

@@ -15,7 +15,7 @@ import pytest
 from renderer_sweeps import calibrate, check_accuracy, render_mcsim
 
 from calibration.combine import KAPPA_PLAUSIBLE_MIN
-from calibration.summary import FocusNotDeterminedError
+from calibration.summary import CalibrationError, FocusNotDeterminedError
 
 
 @pytest.fixture(scope="module")
@@ -158,3 +158,23 @@ def test_a_sweep_clipped_everywhere_has_no_focus_plane(tmp_path: Path) -> None:
     # as unclipped frames of this camera measure it (RMS 0.3 %, up to 1.2 % near focus)
     assert errors.size >= 25
     assert np.sqrt(np.mean(errors**2)) < 0.005
+
+
+def test_micro_images_too_small_for_the_corner_are_named(tmp_path: Path) -> None:
+    """Q0 = 0.4 on 50 px lenses: a corner moves ~17 px from one micro-image to the next and
+    sits near the rim of most of those that show it, where its four half-edges do not fit
+    in the interior. No frame can be measured; the error says why instead of asking
+    whether the board is in view."""
+    sweep = render_mcsim(
+        tmp_path / "largeq",
+        frames=9,
+        step_mm=6,
+        seed=5,
+        extra=("--b", "2.1", "--fit-frame", "--start-mm", "26"),
+    )
+    with pytest.raises(CalibrationError) as caught:
+        calibrate(sweep)
+    message = str(caught.value)
+    assert "corner was found in only 0 of 9 frames" in message
+    assert "micro-images are too small" in message and "micro-image interior" in message
+    assert "in view" not in message

@@ -173,6 +173,7 @@ def test_sweep_with_the_corner_never_found(
     err = capsys.readouterr().err
     assert code == 3
     assert "corner was found in only 0" in err
+    assert "is the board aligned with the lens axis and in view?" in err
     partial = json.loads((tmp_path / "partial.json").read_text())
     assert len(partial["frames"]) == 6
 
