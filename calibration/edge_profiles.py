@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from .clipping import clipped_at
 from .edge_slope import MIN_CONTRAST, refine_slope, typical_contrast
 from .edge_spread import TAIL_SAMPLES, EdgeProfiles
 from .flat_field import FlatField
@@ -155,7 +156,7 @@ def half_edge_profiles(
     )
     clipped = 0
     if np.isfinite(window.clip_count):
-        cuts, clipped = _unclipped(cuts, window.clip_count)
+        cuts, clipped = _unclipped(cuts)
     for axis, cut in enumerate(cuts):  # 0: the vertical edge (row profiles), 1: the horizontal
         if cut is None:
             continue
@@ -210,8 +211,9 @@ def half_edge_profiles(
 
 
 class _Cut(NamedTuple):
-    """One edge's profiles (see :func:`_cut`); ``raw_top`` each profile's largest raw
-    count, ``raw_ends`` the mean raw counts of its first and last ``TAIL_SAMPLES``."""
+    """One edge's profiles (see :func:`_cut`); ``clipped`` whether a profile has a sample
+    the sensor clipped (:func:`~calibration.clipping.clipped_at`), ``raw_ends`` the mean
+    raw counts of its first and last ``TAIL_SAMPLES``."""
 
     x: NDArray[np.float64]
     y: NDArray[np.float64]
@@ -219,7 +221,7 @@ class _Cut(NamedTuple):
     half: NDArray[np.int64]
     sign: NDArray[np.float64]
     along: NDArray[np.float64]
-    raw_top: NDArray[np.float64]
+    clipped: NDArray[np.bool_]
     raw_ends: NDArray[np.float64]
 
     def subset(self, keep: NDArray[np.bool_]) -> _Cut | None:
@@ -286,7 +288,11 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
-    raw_top = values.max(axis=1)
+    if np.isfinite(window.clip_count):
+        rows_idx, cols_idx = (across_idx, along_idx) if transposed else (along_idx, across_idx)
+        clipped = np.asarray(clipped_at(image, rows_idx, cols_idx, window.clip_count).any(axis=1))
+    else:
+        clipped = np.zeros(lens.size, dtype=bool)
     raw_ends = np.stack(
         [values[:, :TAIL_SAMPLES].mean(axis=1), values[:, -TAIL_SAMPLES:].mean(axis=1)], axis=1
     )
@@ -311,21 +317,22 @@ def _cut(
         np.asarray(half, dtype=np.int64),
         np.asarray(sign, dtype=np.float64),
         np.asarray(dist[lens, line], dtype=np.float64),
-        raw_top,
+        clipped,
         raw_ends,
     )
 
 
 def _unclipped(
-    cuts: tuple[_Cut | None, _Cut | None], clip_count: float
+    cuts: tuple[_Cut | None, _Cut | None],
 ) -> tuple[tuple[_Cut | None, _Cut | None], int]:
     """The profiles of both edges that belong to a half-edge (one per micro-image, edge and
-    half) the sensor's clip (raw counts) left whole and that shows an edge; and how many
-    half-edges were clipped.
+    half) the sensor's clip left whole and that shows an edge; and how many half-edges
+    were clipped.
 
     A clipped sample flattens the edge's bright side, and the profile reads sharper (as in
     ISO 12233, a clipped edge is not measured). A half-edge goes whole when one of its
-    samples reaches the clip: dropping single profiles would keep, where the bright level
+    samples is clipped (:func:`~calibration.clipping.clipped_at`: a lone defective pixel
+    at full scale is not): dropping single profiles would keep, where the bright level
     is just below the clip, those whose noise fell low. Of the rest, only half-edges whose
     contrast is at least :data:`~calibration.edge_slope.MIN_CONTRAST` of the typical
     contrast of all of them, or of the clipped ones' median contrast if that is larger,
@@ -336,13 +343,11 @@ def _unclipped(
     if not present:
         return cuts, 0
     key = np.concatenate([c.lens * 4 + 2 * axis + c.half for axis, c in present])
-    top_row = np.concatenate([c.raw_top for _, c in present])
+    clipped_row = np.concatenate([c.clipped for _, c in present])
     ends = np.concatenate([c.raw_ends for _, c in present])
     _, group = np.unique(key, return_inverse=True)
     n_groups = int(group.max()) + 1
-    top = np.full(n_groups, -np.inf)
-    np.maximum.at(top, group, top_row)
-    clipped = top >= clip_count
+    clipped = np.bincount(group, clipped_row, n_groups) > 0
     if not clipped.any():
         return cuts, 0
     rows = np.bincount(group, minlength=n_groups)

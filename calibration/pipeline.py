@@ -26,12 +26,13 @@ from numpy.typing import NDArray
 from .archive import ImageError, SweepArchive
 from .blas_threads import single_blas_thread
 from .camera_model import ModelError, check_priors
+from .clipping import clipped_fraction
 from .combine import combine
 from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .mla_grid import MlaGrid, fit_mla_grid
-from .shading import clipped_fraction, measure_shading
+from .shading import measure_shading
 from .summary import (
     CalibrationError,
     CalibrationOptions,

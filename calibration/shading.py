@@ -320,15 +320,6 @@ def _curvature(
     return -2.0 * slope, 2.0 * float(np.sqrt(sigma2 / sxx))
 
 
-def clipped_fraction(white: NDArray[Any], max_count: float) -> float:
-    """The fraction of the white image's lit pixels (above half its 99.9th percentile) at the
-    sensor's full scale ``max_count`` (counts): 0 for a white exposed below it."""
-    img = np.asarray(white)
-    lit = img > 0.5 * float(np.percentile(img, 99.9))
-    n_lit = int(np.count_nonzero(lit))
-    return float(np.count_nonzero(img[lit] >= max_count)) / n_lit if n_lit else 0.0
-
-
 def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0) -> float:
     """Radius where the micro-images of a white image stop being fully lit (fraction of
     half the micro-image pitch; NaN when it cannot be measured).

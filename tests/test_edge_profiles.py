@@ -335,6 +335,13 @@ def test_clipped_half_edges_are_left_out_whole() -> None:
     same = half_edge_profiles(frame, lattice, lens, image, high)
     assert same.clipped_half_edges == 0
     np.testing.assert_array_equal(same.profiles.y, whole.profiles.y)
+    # lone pixels stuck at full scale are defects, not a clip: nothing is left out
+    stuck = frame.copy()
+    stuck[::7, ::11] = 1000.0
+    window = dataclasses.replace(_window(), clip_count=1000.0)
+    defective = half_edge_profiles(stuck, lattice, lens, image, window)
+    assert defective.clipped_half_edges == 0
+    assert defective.profiles.count == whole.profiles.count
     # the micro-images right of x = 400 overexposed: their light squares clip at 1000
     clip = 1000.0
     bright = _brightened(frame, image, lambda cx: cx > 400.0, clip)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from calibration.lens_grid import LensGrid
-from calibration.shading import clipped_fraction, measure_plateau, measure_shading
+from calibration.shading import measure_plateau, measure_shading
 
 PITCH_PX = 60.0
 SCALE = 1.05  # micro-image centres lie (L+b)/L farther from the principal point
@@ -151,17 +151,3 @@ def test_without_off_axis_micro_images_there_is_no_tilt() -> None:
     found = measure_shading(white, image, background=40.0, lens_grid=image)
     assert not found.tilt_measured
     assert found.angular_curvature() == (found.curvature_px2, found.curvature_se_px2)
-
-
-def test_the_clipped_fraction_counts_lit_pixels_at_full_scale() -> None:
-    rng = np.random.default_rng(2)
-    white = np.zeros((100, 200))
-    white[:, :100] = rng.normal(3000.0, 20.0, (100, 100))  # lit, below full scale
-    assert clipped_fraction(white, 4095) == 0.0
-    white[:25, :100] = 4095  # a quarter of the lit pixels clipped
-    white[90:, 100:] = 4  # dark pixels do not count
-    assert clipped_fraction(white, 4095) == pytest.approx(0.25)
-    # one hot pixel is a negligible fraction, far below the 0.1 % that is reported
-    dark_hot = np.full((100, 200), 3000.0)
-    dark_hot[0, 0] = 4095
-    assert clipped_fraction(dark_hot, 4095) == pytest.approx(1 / 20000)

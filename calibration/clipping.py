@@ -1,0 +1,50 @@
+"""Pixels the sensor clipped: at its full scale, next to another one that is.
+
+A sensor clips where the light exceeds its full scale (``2**bit_depth − 1``
+counts): a bright region then reads flat at that value. A single pixel at full
+scale among lower ones is a defect (stuck or hot), not clipping, and is not
+counted: a defective pixel would otherwise make every edge it touches, and a white
+image with a few of them, look overexposed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def clipped_at(
+    image: NDArray[Any], rows: NDArray[np.integer], columns: NDArray[np.integer], clip: float
+) -> NDArray[np.bool_]:
+    """Whether each pixel ``image[rows, columns]`` (any shape of index arrays) is clipped:
+    at ``clip`` counts or above with at least one of its four neighbours there too."""
+    height, width = image.shape
+    at_clip = image[rows, columns] >= clip
+    if not at_clip.any():
+        return at_clip
+    r, c = rows[at_clip], columns[at_clip]
+    neighbour = np.zeros(r.shape, dtype=bool)
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        rr, cc = r + dr, c + dc
+        inside = (rr >= 0) & (rr < height) & (cc >= 0) & (cc < width)
+        hit = np.zeros(r.shape, dtype=bool)
+        hit[inside] = image[rr[inside], cc[inside]] >= clip
+        neighbour |= hit
+    out = np.zeros(at_clip.shape, dtype=bool)
+    out[at_clip] = neighbour
+    return out
+
+
+def clipped_fraction(white: NDArray[Any], max_count: float) -> float:
+    """The fraction of the white image's lit pixels (above half its 99.9th percentile) that
+    are clipped (:func:`clipped_at`): 0 for a white exposed below full scale ``max_count``."""
+    img = np.asarray(white)
+    lit = img > 0.5 * float(np.percentile(img, 99.9))
+    n_lit = int(np.count_nonzero(lit))
+    if not n_lit:
+        return 0.0
+    rows, columns = np.nonzero(img >= max_count)
+    clipped = clipped_at(img, rows, columns, max_count)
+    return float(np.count_nonzero(clipped)) / n_lit
