@@ -339,7 +339,7 @@ def clipped_edges_note(frames: Sequence[FrameSummary], max_count: int | None) ->
 
 
 WHITE_CLIPPED_WARNING = 1e-3
-"""A white image with more than this fraction of its lit pixels at full scale is reported:
+"""A white image with more than this fraction of its lit pixels clipped is reported:
 its micro-images' centres and shading (so the pitch, and b, and the edges' flat field)
 are then measured on clipped discs."""
 

@@ -83,8 +83,9 @@ class CornerOptions:
     profiles are divided by it before they are fitted, and the edge-spread profiles before
     their levels are read (:mod:`calibration.flat_field`)."""
     clip_count: float = float("inf")
-    """The count at which the sensor clips (its full scale, ``2**bit_depth − 1``): an
-    edge-spread profile with a sample there is not used."""
+    """The count at which the sensor clips (its full scale, ``2**bit_depth − 1``): the
+    edge-spread profiles of a half-edge with a clipped sample are not used
+    (:mod:`calibration.clipping`)."""
 
     def plateau_px(self, image_pitch_px: float) -> float:
         """Radius (px) of the micro-images' fully lit plateau, ``blur_radius_fraction`` of

@@ -76,7 +76,8 @@ class ProfileWindow:
     profile's half length (``2·half_px + 1`` samples); ``flat_field`` the white image's
     smooth shading every sample is divided by (:class:`~calibration.flat_field.FlatField`;
     none by default); ``clip_count`` the count at which the sensor clips (its full scale):
-    a profile with a sample there is not cut, its edge's shape is lost (none by default)."""
+    a half-edge with a clipped sample is left out, its edge's shape is lost (none by
+    default)."""
 
     plateau_px: float
     clearance_px: float
@@ -247,8 +248,8 @@ def _cut(
     signed distances from the edge, their values, the micro-image (index into
     the inputs), the half (0 before the corner along the edge, 1 after), the
     sign that made the dark side negative and each profile's distance along the edge
-    from its micro-image's corner image, and its raw counts' top and ends (none when no
-    profile can be cut).
+    from its micro-image's corner image, whether it has a clipped sample and its raw
+    counts' ends (none when no profile can be cut).
     """
     height, width = image.shape
     r = window.plateau_px
