@@ -46,6 +46,7 @@ from .defocus import (
 )
 from .edge_spread import BinnedEsf
 from .focus import corner_size_mm, paper_focus
+from .frame_analysis import MIN_MICRO_IMAGES
 from .lattice_scale import replace_profiles
 from .mla_grid import MlaGrid
 from .parameters import Estimate, paper_estimate
@@ -290,12 +291,14 @@ def _why_no_corners(frames: Sequence[FrameSummary]) -> str:
     """The likely reason a sweep's frames show no measurable board corner: corners seen but
     too near the micro-images' rims to be measured (small micro-images, large Q), or no
     board at all."""
+    # a corner identified (its micro-images grouped) but not fitted: too few measured it
     few = sum(
         1
         for fs in frames
         if not np.isfinite(fs.Q)
         and any(
-            str((c or {}).get("note", "")).startswith("only ") for c in (fs.standard, fs.reference)
+            c is not None and not c.get("found") and int(c.get("micro_images") or 0) > 0
+            for c in (fs.standard, fs.reference)
         )
     )
     reasons: dict[str, int] = {}
@@ -309,8 +312,9 @@ def _why_no_corners(frames: Sequence[FrameSummary]) -> str:
         return "is the board aligned with the lens axis and in view?"
     per_frame = reasons[top] / len(frames) if top else 0.0
     seen = (
-        f"in {few} frames the corners were identified but measured in fewer than 3 "
-        f"micro-images; {per_frame:.0f} micro-images per frame were rejected as '{top}'"
+        f"in {few} frames the corners were identified but measured in fewer than "
+        f"{MIN_MICRO_IMAGES} micro-images; {per_frame:.0f} micro-images per frame were "
+        f"rejected as '{top}'"
         if 2 * few >= len(frames)
         else f"{per_frame:.0f} micro-images per frame showed a corner but were rejected as '{top}'"
     )

@@ -161,7 +161,7 @@ def half_edge_profiles(
     for axis, cut in enumerate(cuts):  # 0: the vertical edge (row profiles), 1: the horizontal
         if cut is None:
             continue
-        x, y, lens, half, sign, along = cut[:6]
+        x, y, lens, half, sign, along = cut.x, cut.y, cut.lens, cut.half, cut.sign, cut.along
         # the edge's slope from every profile across it (the lattice's is a median of a few
         # micro-images' own: :mod:`calibration.edge_slope`)
         lever_along = sign * along
@@ -289,11 +289,10 @@ def _cut(
         values = image[along_idx, across_idx]
     x = across_idx - edge[lens, line][:, None]
     values = np.asarray(values, dtype=np.float64)
-    if np.isfinite(window.clip_count):
+    clipped = np.zeros(lens.size, dtype=bool)
+    if np.any(values >= window.clip_count):  # only then look at the samples' neighbours
         rows_idx, cols_idx = (across_idx, along_idx) if transposed else (along_idx, across_idx)
         clipped = np.asarray(clipped_at(image, rows_idx, cols_idx, window.clip_count).any(axis=1))
-    else:
-        clipped = np.zeros(lens.size, dtype=bool)
     raw_ends = np.stack(
         [values[:, :TAIL_SAMPLES].mean(axis=1), values[:, -TAIL_SAMPLES:].mean(axis=1)], axis=1
     )

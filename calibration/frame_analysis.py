@@ -37,6 +37,9 @@ from .lens_grid import LensGrid
 from .main_image import CORNER_SE_FLOOR_PX
 from .optics import image_distance
 
+MIN_MICRO_IMAGES = 3
+"""A corner's disparity is fitted from at least this many micro-images that measure it."""
+
 SEARCH_BAND_PITCHES = 8.0
 """Half height of the first search band for corners, in micro-image pitches."""
 
@@ -158,9 +161,9 @@ def _rough_q(meas: list[CornerMeasurement], ctx: FrameContext) -> float:
 def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
     """Least-squares ``s = (1+Q)·m + c`` with iterative 4-sigma outlier rejection."""
     ok = np.array([m.ok for m in fit.measurements], dtype=bool)
-    if ok.sum() < 3:
+    if ok.sum() < MIN_MICRO_IMAGES:
         fit.used = ok & False
-        fit.note = f"only {int(ok.sum())} micro-images measured (need 3)"
+        fit.note = f"only {int(ok.sum())} micro-images measured (need {MIN_MICRO_IMAGES})"
         return
     ii = np.array([m.lens_i for m in fit.measurements])
     jj = np.array([m.lens_j for m in fit.measurements])
@@ -171,7 +174,7 @@ def _fit_disparity(fit: CornerFit, ctx: FrameContext) -> None:
     use = ok.copy()
     for _ in range(4):
         n = int(use.sum())
-        if n < 3:
+        if n < MIN_MICRO_IMAGES:
             break
         design = np.zeros((2 * n, 3))
         design[:n, 0] = mx[use]
