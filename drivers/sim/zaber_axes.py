@@ -3,14 +3,16 @@
 Units are the devices' own: positions in microsteps, the ``maxspeed`` and ``accel``
 settings in Zaber's data units (:func:`drivers.zaber.protocol.data_to_speed` and
 :func:`~drivers.zaber.protocol.data_to_accel` convert them to microsteps/s and
-microsteps/s²), times in the emulator's scaled seconds. :class:`~drivers.sim.zaber_emulator.ZaberEmulator`
-owns the state and runs the protocol.
+microsteps/s²), times in the emulator's scaled seconds (real seconds × ``speedup``, see
+:class:`~drivers.sim.zaber_clock.EmulatorClock`). :class:`~drivers.sim.zaber_emulator.ZaberEmulator`
+owns the state; :class:`~drivers.sim.zaber_commands.ZaberCommandInterpreter` runs the protocol on it.
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -269,11 +271,46 @@ class EmulatedDevice:
     def address(self) -> int:
         return self.spec.address
 
+    def responsive(self, real_now: float) -> bool:
+        """Alive and powered at monotonic time ``real_now``: it executes and answers commands."""
+        return not self.dead and self.off_until <= real_now
 
-@dataclass
-class ReplyFault:
-    kind: Literal["drop", "garble", "delay"]
-    remaining: int | None  # None = forever
-    device: int | None
-    delay_s: float = 0.0
-    command: str | None = None  # only replies to commands starting with this
+
+class EmulatedChain:
+    """The devices of one chain, in address order, looked up by address.
+
+    Raises:
+        ValueError: device addresses that repeat or lie outside 1-99.
+    """
+
+    def __init__(self, specs: Sequence[DeviceSpec], *, checksum: bool, alert: bool) -> None:
+        addresses = [spec.address for spec in specs]
+        if len(set(addresses)) != len(addresses) or not all(1 <= a <= 99 for a in addresses):
+            raise ValueError(f"device addresses must be unique and 1-99, got {addresses}")
+        self.devices = [
+            EmulatedDevice(
+                spec, [EmulatedAxis(i + 1, a) for i, a in enumerate(spec.axes)], checksum, alert
+            )
+            for spec in sorted(specs, key=lambda s: s.address)
+        ]
+
+    def device(self, address: int) -> EmulatedDevice:
+        """The device at ``address`` (KeyError if there is none)."""
+        for dev in self.devices:
+            if dev.address == address:
+                return dev
+        raise KeyError(f"no emulated device {address}")
+
+    def axis(self, device: int, axis: int) -> EmulatedAxis:
+        """Axis ``axis`` (1-based) of the device at ``device`` (KeyError if there is none)."""
+        dev = self.device(device)
+        if not 1 <= axis <= len(dev.axes):
+            raise KeyError(f"device {device} has no axis {axis}")
+        return dev.axes[axis - 1]
+
+    def addressed(self, address: int, real_now: float) -> list[EmulatedDevice]:
+        """The devices that execute a command sent to ``address`` (0: every device) at
+        monotonic time ``real_now``: those at that address that are alive and powered."""
+        return [
+            dev for dev in self.devices if address in (0, dev.address) and dev.responsive(real_now)
+        ]

@@ -41,47 +41,34 @@ Modelling choices (documented where a real device may differ): a command with
 a wrong checksum is discarded without reply; moves are accepted while WR is
 set (the driver is the one that refuses them); a move that interrupts another
 starts from rest at the current position.
+
+This module holds the transport: the serving thread, line framing, and the replies'
+way out through the reply faults.  The pieces it composes: the devices' state and
+kinematics (:mod:`drivers.sim.zaber_axes`), their time and timed events
+(:mod:`drivers.sim.zaber_clock`), the commands (:mod:`drivers.sim.zaber_commands`,
+settings in :mod:`drivers.sim.zaber_settings`) and the fault API
+(:mod:`drivers.sim.zaber_faults`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import heapq
-import itertools
 import os
 import select
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import TracebackType
-from typing import Literal
 
 from drivers.errors import ChecksumError
 from drivers.sim.emulator_links import PtyLink, TcpLink, Transport
-from drivers.sim.zaber_axes import (
-    AxisSpec,
-    DecelerationProfile,
-    DeviceSpec,
-    EmulatedAxis,
-    EmulatedDevice,
-    Motion,
-    MoveFault,
-    ReplyFault,
-    TrapezoidProfile,
-)
-from drivers.sim.zaber_settings import (
-    MOVE_SPEED_ARGS_SINCE,
-    axis_setting,
-    get_setting,
-    is_int,
-    set_setting,
-    warning_flags,
-)
+from drivers.sim.zaber_axes import AxisSpec, DeviceSpec, EmulatedChain, EmulatedDevice
+from drivers.sim.zaber_clock import EmulatorClock
+from drivers.sim.zaber_commands import ZaberCommandInterpreter
+from drivers.sim.zaber_faults import ReplyFaults, ZaberFaultInjection, garble
+from drivers.sim.zaber_settings import axis_setting
 from drivers.zaber import protocol
-
-# --------------------------------------------------------------------------- emulator
 
 
 @dataclass(frozen=True)
@@ -108,15 +95,11 @@ class EmulatorStats:
     alerts: int = 0
 
 
-@dataclass(order=True)
-class _Event:
-    when: float
-    seq: int
-    action: Callable[[], None] = field(compare=False)
-
-
-class ZaberEmulator:
+class ZaberEmulator(ZaberFaultInjection):
     """A chain of emulated Zaber devices behind one pty or 127.0.0.1 TCP port.
+
+    The fault-injection methods (``drop_replies``, ``stall_next_move``, ``power_cycle``...)
+    are :class:`~drivers.sim.zaber_faults.ZaberFaultInjection`'s.
 
     Args:
         devices: the chain (default: one single-axis device at address 1).
@@ -143,36 +126,37 @@ class ZaberEmulator:
         specs = list(devices) if devices else [DeviceSpec()]
         if firmware is not None:
             specs = [dataclasses.replace(spec, firmware=firmware) for spec in specs]
-        addresses = [spec.address for spec in specs]
-        if len(set(addresses)) != len(addresses) or not all(1 <= a <= 99 for a in addresses):
-            raise ValueError(f"device addresses must be unique and 1-99, got {addresses}")
-        if speedup <= 0:
-            raise ValueError("speedup must be positive")
+        self._chain = EmulatedChain(specs, checksum=checksum, alert=alert)
+        self._wake_r, self._wake_w = -1, -1  # the pipe that wakes the serving thread
+        self._clock = EmulatorClock(speedup, wake=self._wake)
         if transport not in ("pty", "tcp"):
             raise ValueError(f"unknown transport {transport!r}")
-        self._devices = [
-            EmulatedDevice(
-                spec, [EmulatedAxis(i + 1, a) for i, a in enumerate(spec.axes)], checksum, alert
-            )
-            for spec in sorted(specs, key=lambda s: s.address)
-        ]
         self._transport: Transport = transport
         self._tcp_port = tcp_port
-        self.speedup = float(speedup)
         self._lock = threading.RLock()
-        self._events: list[_Event] = []
-        self._seq = itertools.count()
-        self._reply_faults: list[ReplyFault] = []
+        self._commands = ZaberCommandInterpreter(
+            self._clock,
+            deliver=self._deliver,
+            send_alert=self._send_alert,
+            disconnect=self.disconnect,
+        )
+        self._reply_faults = ReplyFaults()
         self._inbuf = bytearray()
-        self._command_text = ""  # text of the command being answered (for reply faults)
         self._link: PtyLink | TcpLink | None = None
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
-        self._wake_r, self._wake_w = -1, -1
-        self._t0 = time.monotonic()
         self.stats = EmulatorStats()
         #: Command lines received (decoded, newest last) for protocol assertions.
         self.received: deque[str] = deque(maxlen=2000)
+
+    @property
+    def speedup(self) -> float:
+        """Motion runs this many times faster than real time."""
+        return self._clock.speedup
+
+    @speedup.setter
+    def speedup(self, value: float) -> None:
+        self._clock.speedup = float(value)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -240,9 +224,9 @@ class ZaberEmulator:
     def snapshot(self, device: int = 1, axis: int = 1) -> AxisSnapshot:
         """Position (reported microsteps), physical position, busy and flags of one axis."""
         with self._lock:
-            now = self._now()
-            ax = self._axis(device, axis)
-            self._settle(self._device(device), ax, now)
+            now = self._clock.now()
+            ax = self._chain.axis(device, axis)
+            self._commands.settle(self._chain.device(device), ax, now)
             return AxisSnapshot(
                 ax.reported(now), ax.phys_at(now), ax.busy(now), frozenset(ax.flags)
             )
@@ -250,113 +234,32 @@ class ZaberEmulator:
     def firmware(self, device: int) -> int:
         """Firmware series (6 or 7) of ``device``."""
         with self._lock:
-            return self._device(device).spec.firmware
+            return self._chain.device(device).spec.firmware
 
     def device_checksum(self, device: int) -> bool:
         """Current ``comm.checksum`` of ``device``."""
         with self._lock:
-            return self._device(device).checksum
+            return self._chain.device(device).checksum
 
     def stop_axis(self, device: int, axis: int) -> None:
         """Stop a moving axis as a ``stop`` from elsewhere would (no reply is sent): it
         decelerates and raises NI."""
         with self._lock:
-            dev = self._device(device)
-            self._cmd_stop(dev, axis, [self._axis(device, axis)], [], self._now())
+            dev, ax = self._chain.device(device), self._chain.axis(device, axis)
+            self._commands.stop(dev, [ax], self._clock.now())
 
     def is_powered(self, device: int) -> bool:
         """False while ``device`` is off after a power cycle (it answers nothing then)."""
         with self._lock:
-            return self._device(device).off_until <= time.monotonic()
+            return self._chain.device(device).off_until <= time.monotonic()
 
     def setting(self, device: int, axis: int, name: str) -> int:
         """Current value of an axis setting (pos, maxspeed, accel, limit.min, limit.max)."""
         with self._lock:
-            ax = self._axis(device, axis)
-            value = axis_setting(ax, name, self._now())
+            ax = self._chain.axis(device, axis)
+            value = axis_setting(ax, name, self._clock.now())
             assert value is not None
             return value
-
-    # ------------------------------------------------------------------ fault injection
-
-    def drop_replies(
-        self, count: int | None = 1, *, device: int | None = None, command: str | None = None
-    ) -> None:
-        """Execute the next ``count`` commands but send no reply (None = all).
-
-        ``device`` / ``command`` restrict the fault to one device / to commands
-        starting with ``command`` (e.g. ``"move abs"``), for this and the methods below.
-        """
-        self._add_reply_fault(ReplyFault("drop", count, device, command=command))
-
-    def garble_replies(
-        self, count: int | None = 1, *, device: int | None = None, command: str | None = None
-    ) -> None:
-        """Corrupt one byte in each of the next ``count`` replies (None = all)."""
-        self._add_reply_fault(ReplyFault("garble", count, device, command=command))
-
-    def delay_replies(
-        self,
-        delay_s: float,
-        count: int | None = 1,
-        *,
-        device: int | None = None,
-        command: str | None = None,
-    ) -> None:
-        """Send each of the next ``count`` replies ``delay_s`` real seconds late."""
-        self._add_reply_fault(ReplyFault("delay", count, device, delay_s, command))
-
-    def clear_faults(self) -> None:
-        """Remove pending reply faults and pending move faults; revive dead devices."""
-        with self._lock:
-            self._reply_faults.clear()
-            for dev in self._devices:
-                dev.dead = False
-                for ax in dev.axes:
-                    ax.pending_fault = None
-
-    def set_dead(self, device: int, dead: bool = True) -> None:
-        """A dead device neither executes nor answers anything."""
-        with self._lock:
-            self._device(device).dead = dead
-
-    def stick_next_move(self, device: int, axis: int) -> None:
-        """The next move goes part of the way and then stays BUSY until stop/estop."""
-        self._set_move_fault(device, axis, MoveFault("stuck", 0.3))
-
-    def stall_next_move(self, device: int, axis: int, at_fraction: float = 0.5) -> None:
-        """The next move stalls at ``at_fraction`` of its distance and raises FS."""
-        self._set_move_fault(device, axis, MoveFault("stall", at_fraction, "FS"))
-
-    def limit_on_next_move(
-        self, device: int, axis: int, at_fraction: float = 0.5, *, flag: str = "WL"
-    ) -> None:
-        """The next move is stopped by a limit sensor at ``at_fraction``: WL (or FE)."""
-        if flag not in ("WL", "FE"):
-            raise ValueError("flag must be WL or FE")
-        self._set_move_fault(device, axis, MoveFault("limit", at_fraction, flag))
-
-    def drift_next_move(self, device: int, axis: int, microsteps: int) -> None:
-        """The next move ends ``microsteps`` away from its target, with no flag."""
-        self._set_move_fault(device, axis, MoveFault("drift", 1.0, drift=microsteps))
-
-    def disconnect_on_next_move(self, device: int, axis: int, at_fraction: float = 0.5) -> None:
-        """The line drops when the next move reaches ``at_fraction`` of its duration."""
-        self._set_move_fault(device, axis, MoveFault("disconnect", at_fraction))
-
-    def power_cycle_on_next_move(
-        self, device: int, axis: int, at_fraction: float = 0.5, *, off_s: float = 0.1
-    ) -> None:
-        """The device loses power at ``at_fraction`` of the next move (off ``off_s`` s)."""
-        self._set_move_fault(device, axis, MoveFault("power", at_fraction, off_s=off_s))
-
-    def set_flags(self, device: int, axis: int, *flags: str) -> None:
-        """Raise warning flags on an axis directly (e.g. ``"WT"`` temperature, ``"WV"`` voltage)."""
-        unknown = set(flags) - set(protocol.WARNING_FLAGS)
-        if unknown:
-            raise ValueError(f"unknown warning flags {sorted(unknown)}")
-        with self._lock:
-            self._axis(device, axis).flags.update(flags)
 
     def disconnect(self) -> None:
         """Drop the line now (pty: closed for good; TCP: current client closed)."""
@@ -364,41 +267,7 @@ class ZaberEmulator:
             if self._link is not None:
                 self._link.disconnect()
 
-    def power_cycle(self, device: int, *, off_s: float = 0.1) -> None:
-        """Power-cycle ``device`` now: motion stops, positions lost (WR), silent ``off_s`` s."""
-        with self._lock:
-            self._power_cycle(self._device(device), off_s)
-
-    # ------------------------------------------------------------------ internals: helpers
-
-    def _now(self) -> float:
-        """Scaled (motion) time in seconds."""
-        return (time.monotonic() - self._t0) * self.speedup
-
-    def _real_time(self, scaled: float) -> float:
-        return self._t0 + scaled / self.speedup
-
-    def _device(self, address: int) -> EmulatedDevice:
-        for dev in self._devices:
-            if dev.address == address:
-                return dev
-        raise KeyError(f"no emulated device {address}")
-
-    def _axis(self, device: int, axis: int) -> EmulatedAxis:
-        dev = self._device(device)
-        if not 1 <= axis <= len(dev.axes):
-            raise KeyError(f"device {device} has no axis {axis}")
-        return dev.axes[axis - 1]
-
-    def _add_reply_fault(self, fault: ReplyFault) -> None:
-        with self._lock:
-            self._reply_faults.append(fault)
-
-    def _set_move_fault(self, device: int, axis: int, fault: MoveFault) -> None:
-        if not 0.0 <= fault.fraction <= 1.0:
-            raise ValueError("at_fraction must be within 0..1")
-        with self._lock:
-            self._axis(device, axis).pending_fault = fault
+    # ------------------------------------------------------------------ internals: serving
 
     def _wake(self) -> None:
         if self._wake_w >= 0:
@@ -407,25 +276,11 @@ class ZaberEmulator:
             except OSError:
                 pass
 
-    def _schedule(self, real_when: float, action: Callable[[], None]) -> None:
-        heapq.heappush(self._events, _Event(real_when, next(self._seq), action))
-        self._wake()
-
-    def _power_cycle(self, dev: EmulatedDevice, off_s: float) -> None:
-        now = self._now()
-        for ax in dev.axes:
-            ax.power_loss(now)
-        dev.off_until = time.monotonic() + off_s
-
-    # ------------------------------------------------------------------ internals: serving
-
     def _serve(self) -> None:
         while not self._stopping.is_set():
             with self._lock:
                 link = self._link
-                timeout = 0.2
-                if self._events:
-                    timeout = min(timeout, max(0.0, self._events[0].when - time.monotonic()))
+                timeout = self._clock.seconds_to_next(0.2)
                 fds = [self._wake_r] + (link.read_fds() if link else [])
             try:
                 ready, _, _ = select.select(fds, [], [], timeout)
@@ -443,15 +298,7 @@ class ZaberEmulator:
                     data = link.on_ready([fd for fd in ready if fd != self._wake_r])
                     if data:
                         self._feed(data)
-                self._run_due_events()
-
-    def _run_due_events(self) -> None:
-        while self._events and self._events[0].when <= time.monotonic():
-            heapq.heappop(self._events).action()
-
-    def _send(self, data: bytes) -> None:
-        if self._link is not None:
-            self._link.write(data)
+                self._clock.run_due()
 
     def _feed(self, data: bytes) -> None:
         self._inbuf += data
@@ -470,7 +317,7 @@ class ZaberEmulator:
                 self._handle_line(raw)
 
     def _handle_line(self, raw: bytes) -> None:
-        self._run_due_events()
+        self._clock.run_due()
         try:
             text = raw.decode("ascii")
         except UnicodeDecodeError:
@@ -479,84 +326,41 @@ class ZaberEmulator:
             return  # unsupported characters: a device discards the incomplete command
         self.received.append(text[text.find("/") :])
         self.stats.commands += 1
-        self._command_text = ""
         try:
             command, _ = protocol.parse_command(text)
         except ChecksumError:
             self.stats.bad_checksum += 1
             return  # modelling choice: a command with a wrong checksum is dropped silently
         except protocol.CommandSyntaxError as exc:
-            for dev in self._targets(exc.device):
-                self._reply(dev, 0, None, rejected=True, data=exc.reason)
+            for dev in self._chain.addressed(exc.device, time.monotonic()):
+                self._commands.reply(dev, 0, None, rejected=True, data=exc.reason)
             return
         if command.device > protocol.MAX_DEVICE:
             return
-        for dev in self._targets(command.device):
-            self._execute(dev, command)
+        for dev in self._chain.addressed(command.device, time.monotonic()):
+            self._commands.execute(dev, command)
 
-    def _targets(self, address: int) -> list[EmulatedDevice]:
-        now = time.monotonic()
-        return [
-            dev
-            for dev in self._devices
-            if (address in (0, dev.address)) and not dev.dead and dev.off_until <= now
-        ]
+    # ------------------------------------------------------------------ internals: sending
 
-    # ------------------------------------------------------------------ replies
+    def _send(self, data: bytes) -> None:
+        if self._link is not None:
+            self._link.write(data)
 
-    def _reply(
-        self,
-        dev: EmulatedDevice,
-        axis: int,
-        message_id: int | None,
-        *,
-        rejected: bool = False,
-        data: str = "0",
-        now: float | None = None,
-    ) -> None:
-        # one timestamp per command: status, flags and data must describe the same instant
-        now = self._now() if now is None else now
-        axes = dev.axes if axis == 0 else [dev.axes[axis - 1]] if axis <= len(dev.axes) else []
-        for ax in axes:
-            self._settle(dev, ax, now)
-        flags: set[str] = set()
-        for ax in axes:
-            flags |= ax.flags
-        busy = any(ax.busy(now) for ax in axes)
-        line = protocol.format_reply(
-            dev.address,
-            axis,
-            message_id=message_id,
-            rejected=rejected,
-            busy=busy,
-            warning=protocol.highest_warning(flags),
-            data=data,
-            checksum=dev.checksum,
-        )
-        self._deliver(dev, line)
+    def _send_alert(self, line: bytes) -> None:
+        self.stats.alerts += 1
+        self._send(line)
 
-    def _deliver(self, dev: EmulatedDevice, line: bytes) -> None:
+    def _deliver(self, dev: EmulatedDevice, line: bytes, command: str) -> None:
+        """Send ``dev``'s reply to ``command`` (its text), as the reply faults say."""
         self.stats.replies += 1
-        fault = next(
-            (
-                f
-                for f in self._reply_faults
-                if f.device in (None, dev.address)
-                and (f.command is None or self._command_text.startswith(f.command))
-            ),
-            None,
-        )
+        fault = self._reply_faults.take(dev.address, command)
         if fault is not None:
-            if fault.remaining is not None:
-                fault.remaining -= 1
-                if fault.remaining <= 0:
-                    self._reply_faults.remove(fault)
             if fault.kind == "drop":
                 self.stats.dropped += 1
                 return
             if fault.kind == "garble":
                 self.stats.garbled += 1
-                line = _garble(line, self.stats.garbled)
+                line = garble(line, self.stats.garbled)
             else:
                 self.stats.delayed += 1
 
@@ -564,241 +368,9 @@ class ZaberEmulator:
                     self.stats.delayed_sent += 1
                     self._send(late)
 
-                self._schedule(time.monotonic() + fault.delay_s, send_late)
+                self._clock.schedule(time.monotonic() + fault.delay_s, send_late)
                 return
         self._send(line)
-
-    def _settle(self, dev: EmulatedDevice, ax: EmulatedAxis, now: float) -> None:
-        """Finish ``ax``'s motion if its time is over, with the alert it triggers."""
-        if ax.settle(now):
-            self._alert(dev, ax)
-
-    def _alert(self, dev: EmulatedDevice, ax: EmulatedAxis) -> None:
-        if dev.alert and not dev.dead and dev.off_until <= time.monotonic():
-            self.stats.alerts += 1
-            now = self._now()
-            self._send(
-                protocol.format_alert(
-                    dev.address,
-                    ax.number,
-                    busy=ax.busy(now),
-                    warning=protocol.highest_warning(ax.flags),
-                    checksum=dev.checksum,
-                )
-            )
-
-    # ------------------------------------------------------------------ commands
-
-    def _execute(self, dev: EmulatedDevice, cmd: protocol.Command) -> None:
-        self._command_text = cmd.text
-        mid = cmd.message_id
-        if cmd.axis > len(dev.axes):
-            self._reply(dev, cmd.axis, mid, rejected=True, data="BADAXIS")
-            return
-        words = cmd.text.split()
-        verb = words[0] if words else ""
-        args = words[1:]
-        axes = dev.axes if cmd.axis == 0 else [dev.axes[cmd.axis - 1]]
-        now = self._now()
-        for ax in dev.axes:
-            self._settle(dev, ax, now)
-        handler = {
-            "": self._cmd_status,
-            "home": self._cmd_home,
-            "move": self._cmd_move,
-            "stop": self._cmd_stop,
-            "estop": self._cmd_estop,
-            "get": get_setting,
-            "set": set_setting,
-            "warnings": warning_flags,
-            "system": self._cmd_system,
-        }.get(verb)
-        if handler is None:
-            self._reply(dev, cmd.axis, mid, rejected=True, data="BADCOMMAND")
-            return
-        outcome = handler(dev, cmd.axis, axes, args, now)
-        post: Callable[[], None] | None = None
-        if isinstance(outcome, tuple):
-            outcome, post = outcome
-        if outcome.startswith("RJ "):
-            self._reply(dev, cmd.axis, mid, rejected=True, data=outcome[3:], now=now)
-        else:
-            self._reply(dev, cmd.axis, mid, data=outcome, now=now)
-        if post is not None:
-            post()
-
-    def _cmd_status(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        return "0"
-
-    def _cmd_home(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if args:
-            return "RJ BADDATA"
-        for ax in axes:
-            self._start_motion(dev, ax, target_phys=0.0, kind="home", now=now)
-        return "0"
-
-    def _cmd_move(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if not args or args[0] not in ("abs", "rel", "min", "max"):
-            return "RJ BADCOMMAND"
-        mode, rest = args[0], args[1:]
-        speed: int | None = None
-        accel: int | None = None
-        if mode in ("abs", "rel"):
-            # move abs|rel <value> [speed accel]: the optional pair only from 7.25 on
-            with_speed = dev.spec.version_number >= MOVE_SPEED_ARGS_SINCE
-            if len(rest) not in ((1, 3) if with_speed else (1,)):
-                return "RJ BADDATA"
-            if not all(is_int(token) for token in rest):
-                return "RJ BADDATA"
-            value = int(rest[0])
-            if len(rest) == 3:
-                speed, accel = int(rest[1]), int(rest[2])
-                if speed < 0 or accel < 0:
-                    return "RJ BADDATA"
-                speed, accel = speed or None, accel or None  # 0: the setting's value
-        elif rest:
-            return "RJ BADDATA"
-        else:
-            value = 0
-        targets: list[tuple[EmulatedAxis, int]] = []
-        for ax in axes:
-            current = ax.reported(now)
-            target = {
-                "abs": value,
-                "rel": current + value,
-                "min": ax.limit_min,
-                "max": ax.limit_max,
-            }[mode]
-            if not ax.limit_min <= target <= ax.limit_max:
-                return "RJ BADDATA"
-            targets.append((ax, target))
-        for ax, target in targets:
-            self._start_motion(
-                dev,
-                ax,
-                target_phys=target + ax.offset,
-                kind="move",
-                now=now,
-                speed=speed,
-                accel=accel,
-            )
-        return "0"
-
-    def _cmd_stop(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if args:
-            return "RJ BADDATA"
-        for ax in axes:
-            if not ax.busy(now):
-                continue
-            ax.flags.add("NI")
-            if ax.stuck or ax.motion is None:
-                ax.halt(now)
-                continue
-            pos, vel = ax.phys_at(now), ax.motion.profile.velocity(now)
-            ax.phys = pos
-            ax.motion = Motion(DecelerationProfile(now, pos, vel, ax.acceleration), "stop")
-            self._schedule_settle(dev, ax, ax.motion)
-        return "0"
-
-    def _cmd_estop(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str:
-        if args:
-            return "RJ BADDATA"
-        for ax in axes:
-            if ax.busy(now):
-                ax.flags.add("NI")
-            ax.halt(now)
-        return "0"
-
-    def _cmd_system(
-        self, dev: EmulatedDevice, axis: int, axes: list[EmulatedAxis], args: list[str], now: float
-    ) -> str | tuple[str, Callable[[], None]]:
-        if args != ["reset"]:
-            return "RJ BADCOMMAND"
-        if axis != 0:
-            return "RJ DEVICEONLY"
-        return "0", lambda: self._power_cycle(dev, 0.05)
-
-    # ------------------------------------------------------------------ motion
-
-    def _start_motion(
-        self,
-        dev: EmulatedDevice,
-        ax: EmulatedAxis,
-        *,
-        target_phys: float,
-        kind: Literal["move", "home"],
-        now: float,
-        speed: int | None = None,
-        accel: int | None = None,
-    ) -> None:
-        # Like the firmware: NI marks an interrupted motion and stays set until
-        # "warnings clear" -- a later, successful move does not clear it.
-        if ax.busy(now):
-            ax.flags.add("NI")  # the running motion is interrupted
-        velocity = protocol.data_to_speed(speed) if speed else ax.speed
-        acceleration = protocol.data_to_accel(accel) if accel else ax.acceleration
-        start = ax.phys_at(now)
-        ax.halt(now)
-        ax.phys = start
-        fault = ax.pending_fault if kind == "move" else None
-        if fault is not None:
-            ax.pending_fault = None
-        end = target_phys
-        end_flags: tuple[str, ...] = ()
-        stuck_after = False
-        if fault is not None:
-            if fault.kind in ("stall", "limit", "stuck"):
-                end = start + fault.fraction * (target_phys - start)
-                end_flags = (fault.flag,) if fault.flag else ()
-                stuck_after = fault.kind == "stuck"
-            elif fault.kind == "drift":
-                end = target_phys + fault.drift
-        if kind == "move" and ax.offset != 0.0:
-            end = min(max(end, 0.0), float(ax.spec.limit_max))  # physical end stops
-        profile = TrapezoidProfile(now, start, end, velocity, acceleration)
-        motion = Motion(profile, kind, end_flags, stuck_after)
-        ax.motion = motion
-        self._schedule_settle(dev, ax, motion)
-        if fault is not None and fault.kind in ("disconnect", "power"):
-            full = TrapezoidProfile(now, start, target_phys, velocity, acceleration)
-            at = self._real_time(now + fault.fraction * (full.end_time - now))
-            if fault.kind == "disconnect":
-                self._schedule(at, self._fault_disconnect)
-            else:
-                off_s = fault.off_s
-                self._schedule(at, lambda: self._power_cycle(dev, off_s))
-
-    def _fault_disconnect(self) -> None:
-        if self._link is not None:
-            self._link.disconnect()
-
-    def _schedule_settle(self, dev: EmulatedDevice, ax: EmulatedAxis, motion: Motion) -> None:
-        def settle() -> None:
-            if ax.motion is motion:
-                self._settle(dev, ax, self._now())
-
-        self._schedule(self._real_time(motion.profile.end_time) + 1e-4, settle)
-
-
-def _garble(line: bytes, salt: int) -> bytes:
-    """Change one byte of the body (not the start char nor the terminator)."""
-    body_end = len(line.rstrip(b"\r\n"))
-    index = 1 + (salt * 7) % max(1, body_end - 1)
-    value = line[index]
-    replacement = value + 1 if value < 126 else value - 1
-    if replacement in (ord("\r"), ord("\n")):
-        replacement = ord("#")
-    return line[:index] + bytes([replacement]) + line[index + 1 :]
 
 
 __all__ = ["AxisSnapshot", "AxisSpec", "DeviceSpec", "EmulatorStats", "ZaberEmulator"]

@@ -5,7 +5,7 @@ Each command takes the device, the addressed axis number (0: the device), the ad
 axes, the command's arguments and the emulator's scaled time, and returns the reply's
 data (``"RJ REASON"`` for a rejection). Positions and limits are in microsteps,
 ``maxspeed`` and ``accel`` in Zaber's data units. Commands that start motion or
-schedule events are :class:`~drivers.sim.zaber_emulator.ZaberEmulator`'s.
+schedule events are :class:`~drivers.sim.zaber_commands.ZaberCommandInterpreter`'s.
 """
 
 from __future__ import annotations
