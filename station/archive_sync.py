@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from station.config_sections import StorageConfig
 from station.db import StoreError
 from station.objectstore import ObjectStore, ObjectStoreUnavailable, split_s3_url
 from station.store import JobRecord, JobState, JobStore
@@ -224,4 +225,21 @@ class ArchiveUploader:
         return True
 
 
-__all__ = ["ArchiveUploader", "UploadState", "archive_files"]
+def start_uploader(store: JobStore, storage: StorageConfig, data_dir: Path) -> ArchiveUploader:
+    """The running uploader of a station whose ``[storage] archive_url`` is set
+    (``storage``: the station's ``[storage]`` section). The object store must answer
+    now (:class:`station.objectstore.ObjectStoreUnavailable` otherwise)."""
+    if storage.archive_url is None:
+        raise ValueError("[storage] archive_url is not set: there is nothing to upload to")
+    objects = ObjectStore(storage.archive_url, storage.s3)
+    objects.check()
+    return ArchiveUploader(
+        store,
+        objects,
+        data_dir,
+        keep_local=storage.keep_local_archives,
+        retry_s=storage.s3.upload_retry_s,
+    ).start()
+
+
+__all__ = ["ArchiveUploader", "UploadState", "archive_files", "start_uploader"]

@@ -10,11 +10,13 @@
     station.result(job.id)                            # the calibration (JSON object)
     station.close()
 
-Threads: **one hardware worker** owns the devices (opens them, runs one job at a
-time in submission order, closes them); one archive-writer thread per running
+Threads: **one hardware worker** (:class:`station.hardware_worker.HardwareWorker`)
+owns the devices (opens them, runs one job at a time in submission order, closes
+them); one archive-writer thread per running
 job; the analysis runs in worker processes. Every public method is thread-safe
 and returns quickly: status comes from memory for the active job and from the
-SQLite store otherwise.
+SQLite store otherwise (:class:`station.job_ledger.JobLedger` keeps what clients
+are shown of every job's state in step with the store).
 
 Pause and cancel of the active job are *requests*: the job changes state at
 the next step boundary (the rail is stopped and every captured frame written
@@ -50,12 +52,8 @@ run.
 
 from __future__ import annotations
 
-import collections
-import dataclasses
-import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,8 +61,9 @@ from station.analysis import AnalysisPool
 from station.archive_source import ArchiveReader
 from station.config import StationConfig
 from station.device_holder import DeviceHolder
-from station.events import EventHub, JobEvent, LiveProgress, Subscription
-from station.job_cache import JobRecordCache
+from station.events import EventHub, JobEvent, Subscription
+from station.hardware_worker import HardwareWorker
+from station.job_ledger import JobLedger
 from station.job_records import (
     FrameNotFound,
     JobStatus,
@@ -77,9 +76,8 @@ from station.job_records import (
     status_of,
 )
 from station.ownership import ForeignJob, Ownership, StationBusy, claim_station, open_store
-from station.recovery import VerifyReport, reconcile
-from station.run_control import JobControl, Outcome, RunContext, StepTiming
-from station.runner import SweepRun
+from station.recovery import VerifyReport, interrupt_orphaned_jobs
+from station.run_control import StepTiming
 from station.store import (
     ACTIVE_STATES,
     InvalidTransition,
@@ -87,24 +85,15 @@ from station.store import (
     JobState,
     JobStore,
     StepRecord,
-    StoreError,
-    StoreUnavailable,
     Transition,
 )
-from station.supervisor import Supervisor, Unrecorded, storage_problem, white_problem
+from station.supervisor import Supervisor, storage_problem, white_problem
 from station.sweep import RequestInvalid, SweepPlan, SweepRequest, plan_sweep
 
 FINAL_STATES = frozenset(
     {JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED, JobState.INTERRUPTED}
 )
 """States in which a job is not (or no longer) being worked on."""
-
-
-@dataclass
-class _Active:
-    job_id: int
-    control: JobControl
-    progress: LiveProgress
 
 
 class Orchestrator:
@@ -154,23 +143,21 @@ class Orchestrator:
         self._run_queued = run_queued
         self._open_at_start = open_devices_at_start
         self.hub = EventHub()
-        self._lock = threading.RLock()
-        self._changed = threading.Condition(self._lock)
-        self._queue: collections.deque[int] = collections.deque()
-        self._active: _Active | None = None
-        self._progress_lock = threading.Lock()
-        self._timings: dict[int, list[StepTiming]] = {}
-        self._jobs = JobRecordCache()
-        self._stopping = False
-        self._thread: threading.Thread | None = None
         self._ownership: Ownership | None = None
-        self._held_for_ownership = False  # queued jobs held while the ownership is lost
-        self._pp_cache: dict[str, tuple[float, float]] = {}
         #: Start-up verification of the jobs found running or paused (job id -> report).
         self.recovery_reports: dict[int, VerifyReport] = {}
-        #: Final states the store refused to record (job id -> state and reason).
-        self._unrecorded: dict[int, Unrecorded] = {}
         self.supervisor = Supervisor()
+        self._ledger = JobLedger(lambda: self._store, self.hub, self.supervisor)
+        self._lock = self._ledger.lock
+        self._worker = HardwareWorker(
+            config=config,
+            ledger=self._ledger,
+            hardware=self._hardware,
+            pool=self._pool,
+            supervisor=self.supervisor,
+            ownership_problem=lambda: self.ownership_problem,
+            open_at_start=open_devices_at_start,
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -183,61 +170,51 @@ class Orchestrator:
 
     def start(self) -> Orchestrator:
         """Lock the database, recover interrupted jobs, start the hardware worker."""
-        if self._thread is not None:
+        if self._worker.started:
             return self
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._ownership = claim_station(self.config)
         try:
             if self._store is None:
                 self._store = open_store(self.config)
-            self._recover()
+            self.recovery_reports = interrupt_orphaned_jobs(
+                self._store, self._ledger.store_transition
+            )
             if self._run_queued:
                 mine = self._store.own_station
-                for job in self._store.list_jobs(states={JobState.QUEUED}, station=mine):
-                    self._queue.append(job.id)
-            self._uploader = self._start_uploader()
+                with self._lock:
+                    for job in self._store.list_jobs(states={JobState.QUEUED}, station=mine):
+                        self._worker.enqueue(job.id)
+            if self.config.storage.archive_url is not None:
+                from station.archive_sync import start_uploader
+
+                self._uploader = start_uploader(self._store, self.config.storage, self.data_dir)
         except BaseException:
             if self._own_store and self._store is not None:
                 self._store.close()
                 self._store = None
             self._release_lock()
             raise
-        self._thread = threading.Thread(target=self._worker, name="hardware-worker", daemon=True)
-        self._thread.start()
+        self._worker.start()
         return self
 
     def stop_jobs(self, timeout_s: float = 30.0) -> bool:
         """Begin a shut-down: refuse new jobs, stop the active job at its next step
         boundary (``interrupted``, resumable) and wait up to ``timeout_s`` for it to
         reach that state (its ``state`` event is published). True if no job is active."""
-        with self._lock:
-            self._stopping = True
-            active = self._active
-            self._changed.notify_all()
-        if active is not None:
-            active.control.request_shutdown()
-        deadline = time.monotonic() + timeout_s
-        with self._changed:
-            while self._active is not None:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._changed.wait(min(left, 0.5))
-        return True
+        return self._worker.stop(timeout_s)
 
     @property
     def stopping(self) -> bool:
         """A shut-down has begun (new jobs are refused)."""
-        return self._stopping
+        return self._worker.stopping
 
     def close(self, timeout_s: float = 120.0) -> None:
         """Stop: the active job stops at its next step boundary (``interrupted``),
         the devices are closed, the analysis processes stopped (idempotent)."""
         self.stop_jobs(0.0)
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-            self._thread = None
-        self._flush_unrecorded()
+        self._worker.join(timeout_s)
+        self._ledger.flush_unrecorded()
         if self._pool is not None:
             self._pool.close()
         self._hardware.close()
@@ -259,25 +236,6 @@ class Orchestrator:
         if ownership is not None:
             ownership.release()
 
-    def _start_uploader(self) -> Any:
-        """The archive uploader when ``[storage] archive_url`` is set (the object store
-        must answer now: :class:`station.objectstore.ObjectStoreUnavailable` otherwise)."""
-        storage = self.config.storage
-        if storage.archive_url is None:
-            return None
-        from station.archive_sync import ArchiveUploader
-        from station.objectstore import ObjectStore
-
-        objects = ObjectStore(storage.archive_url, storage.s3)
-        objects.check()
-        return ArchiveUploader(
-            self.store,
-            objects,
-            self.data_dir,
-            keep_local=storage.keep_local_archives,
-            retry_s=storage.s3.upload_retry_s,
-        ).start()
-
     @property
     def uploader(self) -> Any:
         """The archive uploader (None without object storage)."""
@@ -287,21 +245,6 @@ class Orchestrator:
         """Raise :class:`station.ownership.ForeignJob` for another station's job."""
         if not self.store.owns(job):
             raise ForeignJob(job.id, job.station_id, self.store.station_id, job.state)
-
-    def _recover(self) -> None:
-        store = self.store
-        for job in store.list_jobs(states=set(ACTIVE_STATES), station=store.own_station):
-            try:
-                report = reconcile(store, job.id, Path(job.archive_dir))
-                self.recovery_reports[job.id] = report
-                summary = report.summary(job.frames_total)
-            except Exception as exc:  # noqa: BLE001 - the job must still become interrupted
-                summary = f"its archive could not be verified: {exc}"
-            reason = (
-                f"the station process ended while the job was {job.state.value} "
-                f"(found at start-up); {summary}"
-            )
-            self._store_transition(job.id, JobState.INTERRUPTED, reason, last_error=reason)
 
     # ------------------------------------------------------------------ submit / control
 
@@ -316,7 +259,7 @@ class Orchestrator:
         devices have been opened (this waits up to 10 s for the first opening);
         otherwise against the configuration, and again when the job starts.
         """
-        if self._open_at_start and self._thread is not None:
+        if self._open_at_start and self._worker.started:
             self._hardware.tried.wait(10.0)
         return plan_sweep(
             dict(request) if isinstance(request, Mapping) else request,
@@ -345,7 +288,7 @@ class Orchestrator:
                 raise RequestInvalid([("white_from_job", problem)])
         self.check_storage()
         with self._lock:
-            if self._stopping:
+            if self._worker.stopping:
                 raise RuntimeError("the station is shutting down")
             job, created = self.store.create_job(
                 plan.to_dict(),
@@ -354,26 +297,25 @@ class Orchestrator:
                 idempotency_key=idempotency_key,
                 camera_serial=self._hardware.camera_serial,
             )
-            self._jobs.put(job)
+            self._ledger.rows.put(job)
             if created:
                 # published under the lock, so that no worker's "running" can overtake it
-                self._publish_state(job, None, "submitted")
-                self._queue.append(job.id)
-                self._changed.notify_all()
+                self._ledger.publish_state(job, None, "submitted")
+                self._worker.enqueue(job.id)
         return self.status(job.id)
 
     def pause(self, job_id: int, reason: str = "paused by the operator") -> JobStatus:
         """Ask the running job to pause at the next step boundary (409 unless running)."""
         with self._lock:
-            job = self._record(job_id)
+            job = self._ledger.record(job_id)
             self._own(job)
-            active = self._active if self._active and self._active.job_id == job_id else None
+            active = self._worker.active_for(job_id)
             if job.state is not JobState.RUNNING or active is None:
                 if job.state is JobState.PAUSED:
                     return self.status(job_id)
                 raise InvalidTransition(job_id, job.state, JobState.PAUSED, "pause")
             active.control.request_pause(reason)
-            with self._progress_lock:
+            with self._worker.progress_lock:
                 active.progress.pause_requested = True
         return self.status(job_id)
 
@@ -383,28 +325,28 @@ class Orchestrator:
         Raises :class:`station.store.StorageFull` (507) when the disk of the database
         or the archives is full, :class:`station.store.StoreUnavailable` (503) when
         the database cannot be written."""
-        self._flush_unrecorded()
+        self._ledger.flush_unrecorded()
         with self._lock:
-            job = self._record(job_id)
+            job = self._ledger.record(job_id)
             self._own(job)
-            if job_id in self._unrecorded:
-                raise self._unrecorded[job_id].error
-            active = self._active if self._active and self._active.job_id == job_id else None
+            refused = self._ledger.refused_error(job_id)
+            if refused is not None:
+                raise refused
+            active = self._worker.active_for(job_id)
             if active is not None and job.state in ACTIVE_STATES:
                 active.control.request_resume(reason)
-                with self._progress_lock:
+                with self._worker.progress_lock:
                     active.progress.pause_requested = False
                 return self.status(job_id)
             if job.state in (JobState.INTERRUPTED, JobState.FAILED):
-                if self._stopping:
+                if self._worker.stopping:
                     raise RuntimeError("the station is shutting down")
                 self.check_storage()
-                requeued = self._store_transition(
+                requeued = self._ledger.store_transition(
                     job_id, JobState.QUEUED, f"{reason}: queued again"
                 )
-                self._publish_state(requeued, job.state, f"{reason}: queued again")
-                self._queue.append(job_id)
-                self._changed.notify_all()
+                self._ledger.publish_state(requeued, job.state, f"{reason}: queued again")
+                self._worker.enqueue(job_id)
             else:
                 raise InvalidTransition(job_id, job.state, JobState.RUNNING, "resume")
         return self.status(job_id)
@@ -412,25 +354,25 @@ class Orchestrator:
     def cancel(self, job_id: int, reason: str = "cancelled by the operator") -> JobStatus:
         """Cancel a job: queued or interrupted at once, running or paused at the next
         step boundary (every captured frame is kept). 409 for a finished job."""
-        self._flush_unrecorded()
+        self._ledger.flush_unrecorded()
         with self._lock:
-            job = self._record(job_id)
+            job = self._ledger.record(job_id)
             self._own(job)
-            if job_id in self._unrecorded:
-                raise self._unrecorded[job_id].error
-            active = self._active if self._active and self._active.job_id == job_id else None
+            refused = self._ledger.refused_error(job_id)
+            if refused is not None:
+                raise refused
+            active = self._worker.active_for(job_id)
             if active is not None and job.state in ACTIVE_STATES:
                 active.control.request_cancel(reason)
-                with self._progress_lock:
+                with self._worker.progress_lock:
                     active.progress.cancel_requested = True
                 return self.status(job_id)
             if job.state not in (JobState.QUEUED, JobState.INTERRUPTED):
                 raise InvalidTransition(job_id, job.state, JobState.CANCELLED, "cancel")
-            cancelled = self._store_transition(job_id, JobState.CANCELLED, reason)
-            if job_id in self._queue:
-                self._queue.remove(job_id)
-            self._publish_state(cancelled, job.state, reason)
-            self._changed.notify_all()
+            cancelled = self._ledger.store_transition(job_id, JobState.CANCELLED, reason)
+            self._worker.discard(job_id)
+            self._ledger.publish_state(cancelled, job.state, reason)
+            self._ledger.changed.notify_all()
         return self.status(job_id)
 
     # ------------------------------------------------------------------ queries
@@ -443,15 +385,12 @@ class Orchestrator:
         progress; the store only on a cache miss) and takes no lock that the
         worker holds while it stores a result.
         """
-        job = self._record(job_id, cached=True)
-        # one atomic read of the reference, no lock (see above)
-        active = self._active
-        if active is not None and active.job_id != job_id:
-            active = None
+        job = self._ledger.record(job_id, cached=True)
+        active = self._worker.active_for(job_id)  # no lock (see above)
         if active is None or job.state not in ACTIVE_STATES:
-            steps = self._jobs.step_count(job, lambda: self.store.step_count(job_id))
+            steps = self._ledger.rows.step_count(job, lambda: self.store.step_count(job_id))
             return status_of(job, steps)
-        with self._progress_lock:
+        with self._worker.progress_lock:
             p = active.progress
             return status_of(
                 job,
@@ -472,7 +411,7 @@ class Orchestrator:
 
     def record(self, job_id: int) -> JobRecord:
         """The job's stored row, with its result (or a failed calibration's partial one)."""
-        return self._record(job_id, with_result=True)
+        return self._ledger.record(job_id, with_result=True)
 
     def transitions(self, job_id: int) -> list[Transition]:
         """Every state change of the job with its time and reason."""
@@ -487,7 +426,7 @@ class Orchestrator:
     def result(self, job_id: int) -> dict[str, Any]:
         """The calibration result (JSON object) of a succeeded job (:func:`station.job_records.result_of`:
         :class:`ResultNotReady` while it runs or when it ended without one)."""
-        return result_of(self._record(job_id, with_result=True), self.store)
+        return result_of(self._ledger.record(job_id, with_result=True), self.store)
 
     def archive_dir(self, job_id: int) -> Path:
         """The job's ``lfcal-sweep/1`` directory, local or fetched from object storage."""
@@ -503,8 +442,7 @@ class Orchestrator:
 
     def step_timings(self, job_id: int) -> list[StepTiming]:
         """Hardware-thread timings of the steps this process ran for the job."""
-        with self._lock:
-            return list(self._timings.get(job_id, []))
+        return self._worker.step_timings(job_id)
 
     # ------------------------------------------------------------------ events
 
@@ -524,27 +462,14 @@ class Orchestrator:
         (:func:`station.job_records.replay_events`; the SSE recipe is there)."""
         return replay_events(
             self.store,
-            self._record(job_id),
+            self._ledger.record(job_id),
             after,
             reference_gap_mm=self.config.board.reference_gap_mm,
         )
 
     def wait_for(self, job_id: int, states: Iterable[JobState], timeout_s: float) -> JobStatus:
         """Block until the job is in one of ``states``; ``TimeoutError`` after ``timeout_s``."""
-        wanted = set(states)
-        deadline = time.monotonic() + timeout_s
-        with self._changed:
-            while True:
-                job = self._record(job_id)
-                if job.state in wanted:
-                    break
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(
-                        f"job {job_id} is still {job.state.value} after {timeout_s:g} s "
-                        f"(waiting for {', '.join(sorted(s.value for s in wanted))})"
-                    )
-                self._changed.wait(min(left, 1.0))
+        self._ledger.wait_for(job_id, states, timeout_s)
         return self.status(job_id)
 
     def wait_for_frames(self, job_id: int, count: int, timeout_s: float) -> JobStatus:
@@ -584,132 +509,13 @@ class Orchestrator:
         idle = self._hardware.describe_if_idle()
         if idle is not None:
             return idle
-        with self._lock:
-            active = self._active
+        active = self._worker.active
         out = self._hardware.describe_busy()
         if active is not None:
-            with self._progress_lock:
+            with self._worker.progress_lock:
                 out["active_job"] = active.job_id
                 out["rail_mm"] = active.progress.rail_mm
         return out
-
-    # ------------------------------------------------------------------ the worker
-
-    def _publish_state(self, job: JobRecord, previous: JobState | None, reason: str) -> None:
-        """Announce the job's new state (``job`` as the store returned it from the
-        transition); callers hold ``self._lock``, so events keep the store's order."""
-        self.hub.publish(
-            JobEvent(
-                job.id,
-                "state",
-                None,
-                {
-                    "state": job.state.value,
-                    "from": None if previous is None else previous.value,
-                    "reason": reason,
-                    "last_error": job.last_error,
-                },
-            )
-        )
-
-    def _transition(
-        self,
-        job_id: int,
-        state: JobState,
-        reason: str,
-        **kwargs: Any,
-    ) -> JobRecord:
-        with self._lock:
-            before = self.store.get_job(job_id).state
-            job = self._store_transition(job_id, state, reason, **kwargs)
-            # state events leave in the order the store records the transitions
-            self._publish_state(job, before, reason)
-            self._changed.notify_all()
-        return job
-
-    def _store_transition(
-        self, job_id: int, state: JobState, reason: str, **kwargs: Any
-    ) -> JobRecord:
-        """``store.transition`` (every change of a job row goes through here or
-        ``submit``), keeping :attr:`_jobs` up to date before the change is announced."""
-        try:
-            job = self.store.transition(job_id, state, reason, **kwargs)
-        except InvalidTransition:
-            raise  # nothing changed
-        except BaseException:
-            self._jobs.forget(job_id)  # stored or not: read it again
-            raise
-        self._jobs.put(job)
-        return job
-
-    def _run_transition(self, job_id: int, state: JobState, reason: str) -> None:
-        self._transition(job_id, state, reason)
-
-    # ------------------------------------------------------------------ supervision
-
-    def _record(self, job_id: int, *, with_result: bool = False, cached: bool = False) -> JobRecord:
-        """The job as clients must see it: the store's row, unless its final state
-        could not be stored (then that state, from memory). ``cached``: the row
-        from :attr:`_jobs` (without the result), read from the store on a miss."""
-        if cached and not with_result:
-            # another station's jobs (a shared PostgreSQL database) change behind our back
-            job = self._jobs.record(job_id, lambda: self.store.get_job(job_id), self.store.owns)
-        else:
-            job = self.store.get_job(job_id, with_result=with_result)
-        pending = self._unrecorded.get(job_id)
-        if pending is None:
-            return job
-        return dataclasses.replace(
-            job, state=pending.state, last_error=pending.reason, updated_at=pending.at
-        )
-
-    def _end_unrecorded(self, job_id: int, state: JobState, reason: str, error: Exception) -> None:
-        """The store refused the job's final state: keep it in memory (and say so)."""
-        text = (
-            f"{reason}; the job store cannot record this ({error}): the job is interrupted "
-            "(resumable once the store can be written again)"
-        )
-        with self._lock:
-            entry = Unrecorded(JobState.INTERRUPTED, text, time.time(), error)
-            self._unrecorded[job_id] = entry
-            self.hub.publish(
-                JobEvent(
-                    job_id,
-                    "state",
-                    None,
-                    {
-                        "state": entry.state.value,
-                        "from": state.value if state in ACTIVE_STATES else "running",
-                        "reason": text,
-                        "last_error": text,
-                        "recorded": False,
-                    },
-                )
-            )
-            self._changed.notify_all()
-        self.supervisor.note("worker", f"job {job_id}: {text}")
-
-    def _flush_unrecorded(self) -> bool:
-        """Store the final states the store refused earlier; True when none is left."""
-        with self._lock:
-            pending = dict(self._unrecorded)
-        if not pending or self._store is None:
-            return True
-        for job_id, entry in pending.items():
-            try:
-                job = self.store.get_job(job_id)
-                if job.state in ACTIVE_STATES:
-                    self._store_transition(
-                        job_id, entry.state, entry.reason, last_error=entry.reason
-                    )
-            except StoreUnavailable:
-                return False
-            except (StoreError, KeyError):
-                pass  # the job is gone or no longer active: nothing left to record
-            with self._lock:
-                self._unrecorded.pop(job_id, None)
-                self._changed.notify_all()
-        return True
 
     def check_storage(self) -> None:
         """Raise :class:`station.store.StorageFull` when the disk holding the database
@@ -743,193 +549,18 @@ class Orchestrator:
     @property
     def worker_alive(self) -> bool:
         """The hardware worker thread is running."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._worker.alive
 
     @property
     def unrecorded_jobs(self) -> dict[int, str]:
         """Jobs whose final state the store refused (job id -> reason)."""
-        with self._lock:
-            return {k: v.reason for k, v in self._unrecorded.items()}
+        return self._ledger.unrecorded_jobs
 
     @property
     def active_job(self) -> int | None:
         """The job the hardware worker holds, or None."""
-        active = self._active
+        active = self._worker.active
         return None if active is None else active.job_id
-
-    # ------------------------------------------------------------------ the worker
-
-    def _next_job(self) -> JobRecord | None:
-        """Wait for the next queued job and mark it running (under the lock).
-
-        A job the store cannot mark running stays at the head of the queue (retried
-        every second), as does every queued job while the station has lost its
-        ownership of a shared job database; one that cannot be started for another
-        reason fails.
-        """
-        with self._changed:
-            while True:
-                if self._stopping:
-                    return None
-                retry = bool(self._unrecorded)
-                lost = self.ownership_problem
-                if self._queue and lost is not None:
-                    # another process may hold this station now: start nothing until it is back
-                    retry = True
-                    if not self._held_for_ownership:
-                        self._held_for_ownership = True
-                        self.supervisor.note(
-                            "worker", f"queued jobs wait until the ownership is back: {lost}"
-                        )
-                elif lost is None:
-                    self._held_for_ownership = False
-                while self._queue and lost is None:
-                    job_id = self._queue[0]
-                    try:
-                        job = self.store.get_job(job_id)
-                        if job.state is not JobState.QUEUED:
-                            self._queue.popleft()
-                            continue
-                        steps = self.store.step_count(job_id)
-                        reason = (
-                            "started"
-                            if steps == 0 and job.last_error is None
-                            else f"resumed with {steps} of {job.frames_total} frames recorded"
-                        )
-                        job = self._store_transition(
-                            job_id, JobState.RUNNING, reason, clear_error=True
-                        )
-                    except StoreUnavailable as exc:
-                        self.supervisor.note("worker", f"cannot start job {job_id}: {exc}")
-                        retry = True
-                        break
-                    except Exception as exc:  # noqa: BLE001 - the job fails, the queue goes on
-                        self._queue.popleft()
-                        self._fail_unstartable(job_id, exc)
-                        continue
-                    self._queue.popleft()
-                    self._active = _Active(
-                        job_id,
-                        JobControl(),
-                        LiveProgress(job_id, frames_total=job.frames_total, frames_done=steps),
-                    )
-                    self._changed.notify_all()
-                    self._publish_state(job, JobState.QUEUED, reason)
-                    return job
-                self._changed.wait(1.0 if retry else None)
-                if retry:
-                    self._flush_unrecorded()
-
-    def _fail_unstartable(self, job_id: int, exc: BaseException) -> None:
-        reason = f"the job could not be started: internal error: {type(exc).__name__}: {exc}"
-        try:
-            self._transition(job_id, JobState.FAILED, reason, last_error=reason)
-        except InvalidTransition:
-            try:
-                self._transition(job_id, JobState.CANCELLED, reason)
-            except Exception:  # noqa: BLE001 - nothing more to record
-                pass
-        except Exception:  # noqa: BLE001 - the store refuses: nothing more to record
-            pass
-
-    def _worker(self) -> None:
-        """The hardware worker: supervised, it only returns when the station stops."""
-        if self._open_at_start:
-            with self._hardware.hw_lock:
-                try:
-                    self._hardware.ensure()
-                except Exception:  # noqa: BLE001 - reported by devices_info and the first job
-                    pass
-        self._hardware.tried.set()
-        while True:
-            try:
-                if not self._serve_one():
-                    return
-            except Exception as exc:  # noqa: BLE001 - the supervisor: never die, say why
-                self.supervisor.note("worker", f"recovered from {type(exc).__name__}: {exc}")
-                with self._changed:
-                    self._changed.wait(1.0)
-
-    def _serve_one(self) -> bool:
-        """Run the next job to a final state; False when the station stops."""
-        self._flush_unrecorded()
-        job = self._next_job()
-        if job is None:
-            return False
-        try:
-            with self._hardware.hw_lock:
-                outcome = self._run(job)
-        except Exception as exc:  # noqa: BLE001 - SweepRun.execute catches; this is a bug
-            message = f"internal error: {type(exc).__name__}: {exc}"
-            outcome = Outcome(JobState.FAILED, message, last_error=message)
-        self._finish(job.id, outcome)
-        if outcome.devices_broken:
-            with self._hardware.hw_lock:  # learn at once whether the devices can be reopened
-                try:
-                    self._hardware.ensure()
-                except Exception:  # noqa: BLE001 - reported by devices_info
-                    pass
-        return True
-
-    def _run(self, job: JobRecord) -> Outcome:
-        assert self._active is not None
-        active = self._active
-        try:
-            devices = self._hardware.ensure()
-        except Exception as exc:  # noqa: BLE001
-            msg = f"the devices cannot be opened: {exc}"
-            return Outcome(JobState.FAILED, msg, last_error=msg)
-        serial = self._hardware.camera_serial
-        if serial and serial != job.camera_serial:
-            try:
-                self.store.set_camera_serial(job.id, serial)
-            finally:
-                self._jobs.forget(job.id)  # the row changed: read it again
-        timings: list[StepTiming] = []
-        with self._lock:
-            self._timings[job.id] = timings
-            while len(self._timings) > 20:
-                self._timings.pop(next(iter(self._timings)))
-        ctx = RunContext(
-            config=self.config,
-            store=self.store,
-            pool=self._pool,
-            publish=self.hub.publish,
-            transition=self._run_transition,
-            progress=active.progress,
-            progress_lock=self._progress_lock,
-            control=active.control,
-            timings=timings,
-            principal_point_cache=self._pp_cache,
-            row_changed=self._jobs.forget,
-            ownership_problem=lambda: self.ownership_problem,
-        )
-        return SweepRun(job, devices, ctx).execute()
-
-    def _finish(self, job_id: int, outcome: Outcome) -> None:
-        """Store the run's final state; if the store refuses, keep it in memory."""
-        if outcome.devices_broken:
-            self._hardware.close()
-        kwargs: dict[str, Any] = {}
-        if outcome.last_error is not None:
-            kwargs["last_error"] = outcome.last_error
-        if outcome.result is not None:
-            kwargs["result"] = outcome.result
-        try:
-            self._transition(job_id, outcome.state, outcome.reason, **kwargs)
-        except Exception as exc:  # noqa: BLE001 - the job must not stay running
-            state = JobState.RUNNING
-            try:
-                state = self.store.get_job(job_id).state
-            except Exception:  # noqa: BLE001
-                pass
-            if state in ACTIVE_STATES:
-                why = outcome.last_error or outcome.reason
-                self._end_unrecorded(job_id, state, why, exc)
-        finally:
-            with self._lock:
-                self._active = None
-                self._changed.notify_all()
 
 
 __all__ = [

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from calibration.archive import (
     read_manifest,
     sha256_hex,
 )
-from station.store import JobStore, StepRecord
+from station.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StepRecord
 
 
 @dataclass
@@ -213,4 +214,35 @@ def archive_manifest(job_dir: Path) -> SweepManifest | None:
         return None
 
 
-__all__ = ["VerifyReport", "archive_manifest", "reconcile", "write_manifest"]
+def interrupt_orphaned_jobs(
+    store: JobStore, transition: Callable[..., JobRecord]
+) -> dict[int, VerifyReport]:
+    """At start-up: every job of this station found ``running`` or ``paused`` (the
+    previous process died under it) has its archive reconciled (:func:`reconcile`)
+    and becomes ``interrupted`` with what was found, through ``transition`` (called
+    as ``transition(job_id, state, reason, last_error=reason)``). Returns the
+    verification reports (job id -> report); a job whose archive cannot be
+    verified still becomes ``interrupted``, with that reason."""
+    reports: dict[int, VerifyReport] = {}
+    for job in store.list_jobs(states=set(ACTIVE_STATES), station=store.own_station):
+        try:
+            report = reconcile(store, job.id, Path(job.archive_dir))
+            reports[job.id] = report
+            summary = report.summary(job.frames_total)
+        except Exception as exc:  # noqa: BLE001 - the job must still become interrupted
+            summary = f"its archive could not be verified: {exc}"
+        reason = (
+            f"the station process ended while the job was {job.state.value} "
+            f"(found at start-up); {summary}"
+        )
+        transition(job.id, JobState.INTERRUPTED, reason, last_error=reason)
+    return reports
+
+
+__all__ = [
+    "VerifyReport",
+    "archive_manifest",
+    "interrupt_orphaned_jobs",
+    "reconcile",
+    "write_manifest",
+]
