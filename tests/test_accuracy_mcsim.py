@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from renderer_sweeps import calibrate, check_accuracy, render_mcsim
 
-from calibration.combine import KAPPA_PLAUSIBLE_MIN
+from calibration.result_notes import KAPPA_PLAUSIBLE_MIN
 from calibration.summary import CalibrationError, FocusNotDeterminedError
 
 

@@ -19,9 +19,9 @@ import pytest
 from edge_shapes import sinc2_cdf
 from scipy.special import ndtr
 
-from calibration.combine import aperture_scale_warning
 from calibration.defocus import DefocusNotDetermined, EdgeObservation, fit_defocus
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
+from calibration.result_notes import aperture_scale_warning
 
 LENS_PITCH_PX = 100.0
 Q0 = 0.2
