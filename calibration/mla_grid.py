@@ -92,8 +92,18 @@ from .mla_centroids import (
     radial_profile_normalized,
     thresholds,
 )
+from .mla_lattice import (
+    MIN_LENSES,
+    candidate_lenses,
+    dead_lenses,
+    max_move_px,
+    recentre,
+    robust_fit,
+    sparse_subset,
+)
 from .mla_spectrum import Lattice, initial_lattice
 from .shading import WhiteShading
+from .white_screen import check_white, validate_white
 
 __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
 
@@ -103,8 +113,6 @@ STATUS_DEAD = 1
 STATUS_OUTLIER = 2
 STATUS_NAMES = {STATUS_USED: "used", STATUS_DEAD: "dead", STATUS_OUTLIER: "outlier"}
 
-_MIN_PERIODS = 4  # the image must span this many micro-image pitches per axis
-_MIN_LENSES = 9
 _SUBSET_MAX = 400  # lenses per early (sparse) round
 
 
@@ -278,135 +286,7 @@ def micro_image_labels(
     return ii, jj, inside
 
 
-# --------------------------------------------------------------------------- input
-
-
-def _validate(white: NDArray[Any], lens_pitch_px: float) -> NDArray[Any]:
-    img = np.asarray(white)
-    if img.ndim != 2:
-        raise ValueError(f"white image must be 2-D (a single grey channel), got shape {img.shape}")
-    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
-        raise ValueError(f"white image has unsupported dtype {img.dtype}")
-    if not math.isfinite(lens_pitch_px) or lens_pitch_px < 4:
-        raise ValueError(f"lens_pitch_px = {lens_pitch_px} must be a finite number >= 4 px")
-    need = int(math.ceil(_MIN_PERIODS * 1.2 * lens_pitch_px))
-    if min(img.shape) < need:
-        raise ValueError(
-            f"white image {img.shape[1]}x{img.shape[0]} px is too small: the lattice fit needs "
-            f"at least {need} px in each dimension ({_MIN_PERIODS} micro-images of "
-            f"~{lens_pitch_px:.1f} px per axis)"
-        )
-    if np.issubdtype(img.dtype, np.floating) and not np.isfinite(img).all():
-        raise ValueError("white image contains NaN or infinite values")
-    sub = img[::4, ::4]
-    lo, hi = float(sub.min()), float(sub.max())
-    if hi <= lo:
-        raise ValueError(
-            f"white image is uniform (every pixel = {lo:g}): black, saturated or blank, "
-            "not a flat-field image"
-        )
-    return img
-
-
-# --------------------------------------------------------------------------- lattice fit
-
-
-def _fit_lattice(
-    i: NDArray[np.int64], j: NDArray[np.int64], x: NDArray[np.float64], y: NDArray[np.float64]
-) -> Lattice:
-    """Least-squares similarity lattice ``x = ox + a·i - b·j``, ``y = oy + b·i + a·j``."""
-    n = i.size
-    fi, fj = i.astype(np.float64), j.astype(np.float64)
-    A = np.zeros((2 * n, 4))
-    A[:n, 0] = 1.0
-    A[:n, 2] = fi
-    A[:n, 3] = -fj
-    A[n:, 1] = 1.0
-    A[n:, 2] = fj
-    A[n:, 3] = fi
-    sol, *_ = np.linalg.lstsq(A, np.concatenate([x, y]), rcond=None)
-    return Lattice((float(sol[0]), float(sol[1])), float(sol[2]), float(sol[3]))
-
-
-def _robust_fit(
-    i: NDArray[np.int64],
-    j: NDArray[np.int64],
-    x: NDArray[np.float64],
-    y: NDArray[np.float64],
-    use: NDArray[np.bool_],
-    *,
-    outlier_sigma: float,
-    outlier_floor_px: float,
-) -> tuple[Lattice, NDArray[np.bool_]]:
-    """Fit with iterative rejection of centres farther than ``max(k·σ, floor)`` from the lattice."""
-    keep = use.copy()
-    lat = _fit_lattice(i[keep], j[keep], x[keep], y[keep])
-    for _ in range(8):
-        px, py = lat.centre(i, j)
-        res = np.hypot(x - px, y - py)
-        sigma = float(np.median(res[keep])) / 1.1774  # median of a 2-D Gaussian's radius
-        limit = max(outlier_sigma * sigma, outlier_floor_px)
-        new = use & (res <= limit)
-        if new.sum() < _MIN_LENSES:
-            raise ValueError(
-                f"white image: only {int(new.sum())} micro-images agree with a common lattice"
-            )
-        if np.array_equal(new, keep):
-            break
-        keep = new
-        lat = _fit_lattice(i[keep], j[keep], x[keep], y[keep])
-    return lat, keep
-
-
-def _dead_lenses(
-    x: NDArray[np.float64],
-    y: NDArray[np.float64],
-    level: NDArray[np.float64],
-    dead_fraction: float,
-) -> NDArray[np.bool_]:
-    """Lenses darker than ``dead_fraction`` × a robust quadratic trend of the plateau levels."""
-    ok = np.isfinite(x) & (level > 0)
-    dead = ~ok
-    if ok.sum() < 12:
-        return dead
-    s = max(float(np.ptp(x[ok])), float(np.ptp(y[ok])), 1.0)
-    xn, yn = (x - np.mean(x[ok])) / s, (y - np.mean(y[ok])) / s
-    xn, yn = np.where(ok, xn, 0.0), np.where(ok, yn, 0.0)
-    basis = np.stack([np.ones_like(xn), xn, yn, xn * xn, xn * yn, yn * yn], axis=1)
-    logl = np.log(np.where(ok, level, 1.0))
-    fit = ok.copy()
-    model = np.zeros_like(logl)
-    for _ in range(6):
-        coef, *_ = np.linalg.lstsq(basis[fit], logl[fit], rcond=None)
-        model = basis @ coef
-        res = logl - model
-        sigma = 1.4826 * float(np.median(np.abs(res[fit])))
-        new = ok & (np.abs(res) <= max(3.0 * sigma, 0.05))
-        if np.array_equal(new, fit) or new.sum() < 12:
-            break
-        fit = new
-    return dead | (level < dead_fraction * np.exp(model))
-
-
 # --------------------------------------------------------------------------- main entry
-
-
-def _candidates(
-    lat: Lattice, shape: tuple[int, int], margin: float
-) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
-    """Lenses whose centre is on the sensor, those at least ``margin`` inside, and the count of the rest."""
-    h, w = shape
-    g = lat.grid()
-    ii, jj = g.indices_in(w, h, margin_px=0.0)
-    x, y = lat.centre(ii, jj)
-    inside = (x >= margin) & (x <= w - 1 - margin) & (y >= margin) & (y <= h - 1 - margin)
-    return ii[inside], jj[inside], int((~inside).sum())
-
-
-def _sparse_subset(i: NDArray[np.int64], j: NDArray[np.int64], max_n: int) -> NDArray[np.bool_]:
-    """Every k-th lens along i and j (k chosen so that at most about ``max_n`` remain)."""
-    k = max(1, int(math.ceil(math.sqrt(i.size / max_n))))
-    return ((i % k) == 0) & ((j % k) == 0)
 
 
 def fit_mla_grid(
@@ -449,7 +329,7 @@ def fit_mla_grid(
     small, uniform, has no lattice in the expected pitch band, or is not a
     flat-field (e.g. a checkerboard frame).
     """
-    img = _validate(white, lens_pitch_px)
+    img = validate_white(white, lens_pitch_px)
     if max_iterations < 1 or not tol_px > 0:
         raise ValueError("max_iterations must be >= 1 and tol_px > 0")
     say = progress or (lambda _msg: None)
@@ -493,10 +373,10 @@ def _setup(
     h, w = img.shape
     pitch = lat.pitch
     half = int(math.ceil(0.5 * pitch)) + 1
-    ii, jj, _ = _candidates(lat, img.shape, half + 1)
-    if ii.size < _MIN_LENSES:
+    ii, jj, _ = candidate_lenses(lat, img.shape, half + 1)
+    if ii.size < MIN_LENSES:
         raise ValueError(
-            f"white image: only {ii.size} whole micro-images in view (need {_MIN_LENSES})"
+            f"white image: only {ii.size} whole micro-images in view (need {MIN_LENSES})"
         )
     x, y = lat.centre(ii, jj)
     order = np.argsort(np.hypot(x - (w - 1) / 2, y - (h - 1) / 2))[:128]
@@ -507,7 +387,7 @@ def _setup(
     patch -= np.float32(bg)
     level, spread = central_stats(patch, r, pitch)
     dark = ~(level > max(dead_fraction * float(np.percentile(level, 90)), 5.0 * noise))
-    _check_white(dark, spread, max_dark_fraction, max_nonflat_fraction)
+    check_white(dark, spread, max_dark_fraction, max_nonflat_fraction)
     radii, prof = radial_profile(patch[~dark], r[~dark], level[~dark], pitch)
     plateau, lo, hi, r_half = thresholds(radii, prof, pitch)
     return CentroidParams(half, pitch, bg, noise, plateau, lo, hi), r_half
@@ -537,24 +417,24 @@ def _fit(
     iterations = 0
     moved = math.inf
     for iterations in range(1, max_iterations + 1):  # noqa: B007
-        ii, jj, n_border = _candidates(lat, img.shape, margin)
-        if ii.size < _MIN_LENSES:
+        ii, jj, n_border = candidate_lenses(lat, img.shape, margin)
+        if ii.size < MIN_LENSES:
             raise ValueError(
-                f"white image: only {ii.size} whole micro-images in view (need {_MIN_LENSES})"
+                f"white image: only {ii.size} whole micro-images in view (need {MIN_LENSES})"
             )
         sparse = sparse_phase and ii.size > 2 * _SUBSET_MAX
         if sparse:
-            sel = _sparse_subset(ii, jj, _SUBSET_MAX)
+            sel = sparse_subset(ii, jj, _SUBSET_MAX)
             ii, jj = ii[sel], jj[sel]
         xp, yp = lat.centre(ii, jj)
         m = measure_centres(img, xp, yp, prm, pool, flatness=iterations == 1)
-        dead = _dead_lenses(m.x, m.y, m.level, dead_fraction)
+        dead = dead_lenses(m.x, m.y, m.level, dead_fraction)
         if iterations == 1:
-            _check_white(dead, m.spread, max_dark_fraction, max_nonflat_fraction)
-        new, keep = _robust_fit(
+            check_white(dead, m.spread, max_dark_fraction, max_nonflat_fraction)
+        new, keep = robust_fit(
             ii, jj, m.x, m.y, ~dead, outlier_sigma=outlier_sigma, outlier_floor_px=outlier_floor_px
         )
-        moved = _max_move(lat, new, w, h)
+        moved = max_move_px(lat, new, w, h)
         say(
             f"round {iterations}{' (sparse)' if sparse else ''}: {int(keep.sum())}/{ii.size} "
             f"lenses, lattice moved {moved:.4f} px"
@@ -574,7 +454,7 @@ def _fit(
         raise ValueError(
             f"white image: the lattice fit did not converge in {max_iterations} rounds"
         )
-    lat, di, dj = _recentre(lat, pp)
+    lat, di, dj = recentre(lat, pp)
     return _result(
         img,
         lat,
@@ -601,54 +481,6 @@ class _Round:
     dead: NDArray[np.bool_]
     keep: NDArray[np.bool_]
     n_border: int
-
-
-def _max_move(old: Lattice, new: Lattice, w: int, h: int) -> float:
-    """Largest displacement (px) between two lattices' nodes at the sensor corners."""
-    g_old, g_new = old.grid(), new.grid()
-    fi, fj = g_old.fractional_index(
-        np.array([0.0, w - 1.0, 0.0, w - 1.0]), np.array([0.0, 0.0, h - 1.0, h - 1.0])
-    )
-    ox, oy = g_old.centre(fi, fj)
-    nx, ny = g_new.centre(fi, fj)
-    return float(np.max(np.hypot(nx - ox, ny - oy)))
-
-
-def _recentre(lat: Lattice, pp: tuple[float, float]) -> tuple[Lattice, int, int]:
-    """The same lattice with node (0, 0) moved to the node nearest the principal point.
-
-    Returns the new lattice and the old index ``(di, dj)`` of the new origin
-    (subtract it from old indices).
-    """
-    ni, nj = lat.grid().nearest(np.array([pp[0]]), np.array([pp[1]]))
-    ox, oy = lat.centre(ni, nj)
-    return Lattice((float(ox[0]), float(oy[0])), lat.a, lat.b), int(ni[0]), int(nj[0])
-
-
-def _check_white(
-    dead: NDArray[np.bool_],
-    spread: NDArray[np.float64],
-    max_dark_fraction: float,
-    max_nonflat_fraction: float,
-) -> None:
-    """``ValueError`` unless the micro-images look like those of a flat field."""
-    dark = float(np.mean(dead))
-    if dark > max_dark_fraction:
-        raise ValueError(
-            f"not a white (flat-field) image: {100 * dark:.0f}% of the micro-images are dark "
-            "(a board frame, a lens cap or a dark frame?)"
-        )
-    lit = spread[~dead]
-    if lit.size == 0:
-        return
-    typical = float(np.median(lit))
-    nonflat = float(np.mean(lit > max(3.0 * typical, 0.05)))
-    if typical > 0.1 or nonflat > max_nonflat_fraction:
-        raise ValueError(
-            f"not a white (flat-field) image: {100 * max(nonflat, float(typical > 0.1)):.0f}% "
-            f"of the micro-images are not uniformly lit (median variation {100 * typical:.1f}%; "
-            "a board or scene frame?)"
-        )
 
 
 def _result(
