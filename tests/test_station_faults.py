@@ -26,7 +26,7 @@ from test_station_helpers import (
     make_station,
 )
 
-import calibration.archive as archive_module
+import calibration.archive_writer as archive_module
 from station.events import JobEvent
 from station.orchestrator import Orchestrator
 from station.store import JobState

@@ -22,7 +22,7 @@ database write error        the store's connections come from a ``sqlite3.Connec
 disk full from another      the server runs in its own mount namespace (``unshare -rm``)
 process                     on a 64 MB tmpfs; this test process fills that tmpfs through
                             ``/proc/PID/root`` (a real ENOSPC for the server)
-archive write error         ``calibration.archive.atomic_write_bytes`` raises EIO for
+archive write error         ``calibration.archive_writer.atomic_write_bytes`` raises EIO for
                             frame files while armed (the writer's boundary)
 camera loss                 the simulated camera is unplugged mid-sweep
 serial loss                 the Zaber emulator drops the line during a rail move
@@ -64,7 +64,7 @@ from test_web_support import (
     write_config,
 )
 
-import calibration.archive as archive_module
+import calibration.archive_writer as archive_module
 from station.config import load_config, with_frame_cache
 from station.db import SQLitePool
 from station.events import JobEvent
