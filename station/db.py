@@ -13,7 +13,7 @@ backend, :class:`station.db_postgres.PostgresPool` (PostgreSQL through psycopg 3
 implements the same three methods (``read``, ``write``, ``close``) plus
 :attr:`ConnectionPool.health`, and maps its driver's errors onto
 :class:`StorageFull` / :class:`StoreUnavailable` / :class:`UniqueViolation` as
-:func:`sqlite_error` does here. :func:`station.backends.open_pool` picks the
+:func:`sqlite_error` does here. :func:`station.ownership.open_store` picks the
 backend from ``[storage] database`` (a file path or a ``postgresql://`` URL).
 
 Errors: a database that cannot be read or written raises
