@@ -42,57 +42,42 @@ is reported within about a second.
 
 How a camera is opened (no discovery), its transport and its stream are set up is in
 :mod:`drivers.aravis_connect`; how a stream buffer becomes a :class:`Frame`, in
-:mod:`drivers.aravis_frames`.
+:mod:`drivers.aravis_frames`; its GenICam features and the GLib errors, in
+:mod:`drivers.aravis_nodes`.  Opening, identity, configuration and the reconnect loop are
+shared with the harvesters backend (:class:`drivers.genicam_camera.GenICamCamera`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
 import types
-from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from typing import Any
 
 from drivers.aravis_connect import (
     connect,
+    control_is_lost,
     drop_all,
     open_stream,
     setup_transport,
 )
 from drivers.aravis_frames import buffer_to_frame, pop_frame_buffer
-from drivers.camera import (
-    SOFTWARE_TRIGGER,
-    CameraContext,
-    CameraInfo,
-    CameraSettings,
-    Frame,
-    TransportSettings,
-    bit_depth,
-)
+from drivers.aravis_nodes import AravisNodes, glib_errors
+from drivers.camera import Frame, TransportSettings
 from drivers.camera_errors import (
     BackendUnavailable,
-    CameraBusy,
     CameraError,
     CameraLost,
     CameraNotFound,
-    CameraTimeout,
-    FeatureMissing,
-    InvalidSetting,
 )
-from drivers.gige_host import (
-    GVBS_CONTROL_CHANNEL_PRIVILEGE,
-    gvcp_ping,
-)
+from drivers.genicam_camera import GenICamCamera
+from drivers.gige_host import gvcp_ping
 from drivers.sfnc import SfncCamera
 
 log = logging.getLogger(__name__)
-
-# GLib error codes (ArvDeviceError, ArvGcError in Aravis 0.8).
-_DEVICE_NOT_CONNECTED, _DEVICE_TRANSFER, _DEVICE_TIMEOUT = 2, 4, 5
-_DEVICE_FEATURE_NOT_FOUND, _DEVICE_NOT_CONTROLLER, _DEVICE_ACCESS_DENIED = 1, 10, 17
-_GC_OUT_OF_RANGE, _GC_NODE_NOT_FOUND, _GC_ENTRY_NOT_FOUND, _GC_READ_ONLY = 4, 7, 8, 10
 
 _GI: types.SimpleNamespace | None = None
 
@@ -114,120 +99,7 @@ def _aravis() -> types.SimpleNamespace:
     return _GI
 
 
-class _AravisNodes:
-    """:class:`drivers.camera.NodeMap` on an ``ArvDevice``.
-
-    It holds its owner, not the device, so that dropping the owner's device really
-    releases it (a traceback keeping this object alive keeps no GigE session open).
-    """
-
-    def __init__(self, owner: AravisCamera) -> None:
-        self._owner = owner
-
-    @property
-    def _dev(self) -> Any:
-        device = self._owner._device
-        if device is None:
-            raise CameraLost("the camera connection is closed", device=self._owner.label)
-        return device
-
-    def _node(self, name: str) -> Any:
-        with self._owner._gerrors(name):
-            return self._dev.get_feature(name)
-
-    def _kind(self, name: str) -> str:
-        ar = _aravis().Aravis
-        node = self._node(name)
-        if node is None:
-            raise FeatureMissing(
-                f"the camera does not offer the GenICam feature {name!r}",
-                feature=name,
-                device=self._owner.label,
-            )
-        for kind, cls in (
-            ("enum", ar.GcEnumeration),
-            ("bool", ar.GcBoolean),
-            ("float", ar.GcFloat),
-            ("int", ar.GcInteger),
-            ("str", ar.GcString),
-            ("command", ar.GcCommand),
-        ):
-            if isinstance(node, cls):
-                return kind
-        return "unknown"
-
-    def is_available(self, name: str) -> bool:
-        if self._node(name) is None:
-            return False
-        with self._owner._gerrors(name):
-            return bool(self._dev.is_feature_available(name))
-
-    def is_writable(self, name: str) -> bool:
-        ar = _aravis().Aravis
-        with self._owner._gerrors(name):
-            mode = self._dev.get_feature_access_mode(name)
-        return mode in (ar.GcAccessMode.RW, ar.GcAccessMode.WO)
-
-    def get(self, name: str) -> int | float | str | bool:
-        kind = self._kind(name)
-        with self._owner._gerrors(name):
-            if kind in ("enum", "str"):
-                return str(self._dev.get_string_feature_value(name))
-            if kind == "bool":
-                return bool(self._dev.get_boolean_feature_value(name))
-            if kind == "float":
-                return float(self._dev.get_float_feature_value(name))
-            if kind == "int":
-                return int(self._dev.get_integer_feature_value(name))
-        raise FeatureMissing(
-            f"{name} cannot be read as a value", feature=name, device=self._owner.label
-        )
-
-    def set(self, name: str, value: int | float | str | bool) -> None:
-        kind = self._kind(name)
-        with self._owner._gerrors(name):
-            if kind in ("enum", "str"):
-                self._dev.set_string_feature_value(name, str(value))
-            elif kind == "bool":
-                self._dev.set_boolean_feature_value(name, bool(value))
-            elif kind == "float":
-                self._dev.set_float_feature_value(name, float(value))
-            elif kind == "int":
-                self._dev.set_integer_feature_value(name, int(value))
-            else:
-                raise FeatureMissing(
-                    f"{name} cannot be set", feature=name, device=self._owner.label
-                )
-
-    def execute(self, name: str) -> None:
-        with self._owner._gerrors(name):
-            self._dev.execute_command(name)
-
-    def enum_entries(self, name: str) -> tuple[str, ...]:
-        with self._owner._gerrors(name):
-            return tuple(self._dev.dup_available_enumeration_feature_values_as_strings(name) or ())
-
-    def bounds(self, name: str) -> tuple[float, float]:
-        kind = self._kind(name)
-        with self._owner._gerrors(name):
-            if kind == "float":
-                lo, hi = self._dev.get_float_feature_bounds(name)
-            else:
-                lo, hi = self._dev.get_integer_feature_bounds(name)
-        return float(lo), float(hi)
-
-    def increment(self, name: str) -> float | None:
-        kind = self._kind(name)
-        with self._owner._gerrors(name):
-            if kind == "int":
-                return float(self._dev.get_integer_feature_increment(name))
-            if kind == "float":
-                inc = float(self._dev.get_float_feature_increment(name))
-                return inc if inc > 0 else None
-        return None
-
-
-class AravisCamera(CameraContext):
+class AravisCamera(GenICamCamera):
     """A GenICam camera through Aravis 0.8 (GigE Vision), software-triggered.
 
     Args:
@@ -270,17 +142,14 @@ class AravisCamera(CameraContext):
         if interface == "usb3" and serial is None and address is None:
             raise ValueError("a USB3 Vision camera is opened by serial")
         base = transport or TransportSettings()
-        self.transport = TransportSettings(
+        self.transport = dataclasses.replace(
+            base,
             packet_size=packet_size if packet_size is not None else base.packet_size,
-            packet_delay_ns=base.packet_delay_ns,
-            throughput_limit_bps=base.throughput_limit_bps,
             buffer_count=n_buffers if n_buffers is not None else base.buffer_count,
-            socket_buffer_bytes=base.socket_buffer_bytes,
             frame_retention_ms=(
                 frame_retention_ms if frame_retention_ms is not None else base.frame_retention_ms
             ),
             packet_resend=packet_resend if packet_resend is not None else base.packet_resend,
-            packet_socket=base.packet_socket,
         )
         if self.transport.buffer_count < 1 or self.transport.frame_retention_ms <= 0:
             raise ValueError("n_buffers >= 1 and frame_retention_ms > 0")
@@ -289,43 +158,23 @@ class AravisCamera(CameraContext):
         self.allow_discovery = allow_discovery
         self.interface = interface
         if interface == "usb3":
-            self.label = f"usb3://{serial or address}"
+            label = f"usb3://{serial or address}"
         else:
-            self.label = f"gige://{address}" if address else f"aravis://{serial}"
+            label = f"gige://{address}" if address else f"aravis://{serial}"
             if address and serial:
-                self.label += f" (serial {serial})"
-        #: Start-up warnings (socket buffer capped by net.core.rmem_max, transport notes).
-        self.warnings: list[str] = []
-
-        self._lock = threading.RLock()
+                label += f" (serial {serial})"
+        super().__init__(label)
         self._device: Any = None
         self._camera: Any = None
         self._stream: Any = None
         self._signal_id: int | None = None
         self._payload = 0
         self._streaming = False
-        self._sfnc: SfncCamera | None = None
-        self._info: CameraInfo | None = None
-        self._applied: CameraSettings | None = None
-        self._requested: CameraSettings | None = None
-        self._lost = False
         self._control_lost = threading.Event()
         self._disposers: list[threading.Thread] = []
         self._ip: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
-
-    @property
-    def is_open(self) -> bool:
-        """True between ``open()`` and ``close()`` (also while the camera is lost)."""
-        return self._sfnc is not None or self._lost
-
-    def open(self) -> None:
-        """Connect, take control, read the camera info and set up the software trigger."""
-        with self._lock:
-            if self.is_open:
-                return
-            self._open_session()
 
     def close(self) -> None:
         """Stop acquisition and release the camera (control channel, stream)."""
@@ -337,62 +186,9 @@ class AravisCamera(CameraContext):
                 except CameraError:
                     pass  # already marked lost, disposed in the background
             self._streaming = False
-            objects = [self._stream, self._camera, self._device]
-            self._disconnect_signal()
-            self._stream = self._camera = self._device = None
-            self._sfnc = None
+            objects = self._detach()
             self._lost = False
             drop_all(objects)
-
-    def temperature_c(self) -> float | None:
-        """``DeviceTemperature`` (°C) now; None without one (or when closed)."""
-        sfnc = self._sfnc
-        return None if sfnc is None else sfnc.temperature_c()
-
-    def info(self) -> CameraInfo:
-        """Identity and capabilities, read at open."""
-        with self._lock:
-            self._require_open()
-            assert self._info is not None
-            return self._info
-
-    def exposure_limits_us(self) -> tuple[float, float]:
-        """(min, max) ``ExposureTime`` in µs, read from the camera now."""
-        with self._lock:
-            return self._session().exposure_limits_us()
-
-    def configure(self, settings: CameraSettings) -> CameraSettings:
-        """Stop acquisition, apply ``settings``, return the values read back.
-
-        Raises ``FeatureMissing`` for a pixel format or feature the camera does not offer
-        and ``InvalidSetting`` for out-of-range values.  The settings are re-applied
-        automatically after a reconnect.
-        """
-        with self._lock:
-            bit_depth(settings.pixel_format)
-            sfnc = self._session()
-            self._stop_streaming()
-            try:
-                self._applied = sfnc.apply(settings)
-            except (FeatureMissing, InvalidSetting):
-                self._applied = sfnc.read_settings()  # partly applied: record what is in force
-                raise
-            self._requested = settings
-            return self._applied
-
-    def read_feature(self, name: str) -> int | float | str | bool:
-        """Current value of any GenICam feature (diagnostics); ``FeatureMissing`` if absent."""
-        with self._lock:
-            sfnc = self._session()
-            sfnc.require(name)
-            return sfnc.nodes.get(name)
-
-    def settings(self) -> CameraSettings:
-        """The settings in force (as read back after the last configure/open)."""
-        with self._lock:
-            self._require_open()
-            assert self._applied is not None
-            return self._applied
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
         """Return the next frame: fire one software trigger first, or (hardware trigger)
@@ -406,16 +202,13 @@ class AravisCamera(CameraContext):
             IncompleteFrame: the frame arrived damaged (never returned partially).
             CameraLost: the camera stopped answering; the next grab reopens it once.
         """
-        if timeout_s <= 0:
-            raise InvalidSetting(f"timeout_s must be > 0, not {timeout_s}", device=self.label)
+        self._check_timeout(timeout_s)
         with self._lock:
             self._session()
             self._ensure_streaming()
             self._drain_stale()
             assert self._sfnc is not None
-            trigger = self._applied.trigger if self._applied else SOFTWARE_TRIGGER
-            if trigger == SOFTWARE_TRIGGER:
-                self._sfnc.nodes.execute("TriggerSoftware")
+            trigger = self._fire_trigger(self._sfnc)
             buffer = pop_frame_buffer(
                 _aravis(), self._stream, time.monotonic() + timeout_s, self._gerrors, self.label
             )
@@ -425,93 +218,35 @@ class AravisCamera(CameraContext):
                     raise CameraLost(
                         "the camera stopped answering while waiting for a frame", device=self.label
                     )
-                raise CameraTimeout(
-                    f"no frame within {timeout_s:g} s after the software trigger"
-                    if trigger == SOFTWARE_TRIGGER
-                    else f"no frame within {timeout_s:g} s: no pulse on trigger line {trigger}?",
-                    device=self.label,
-                )
+                raise self._no_frame(timeout_s, trigger)
             try:
                 return buffer_to_frame(
                     _aravis(),
                     buffer,
                     applied=self._applied,
                     info=self._info,
-                    temperature_c=self._sfnc.temperature_c() if self._sfnc else None,
+                    temperature_c=self.temperature_c(),
                     label=self.label,
                 )
             finally:
                 if self._stream is not None:
                     self._stream.push_buffer(buffer)
 
-    def reconnect(self, timeout_s: float = 10.0) -> None:
-        """Reopen the camera, retrying until ``timeout_s``; settings are re-applied.
-
-        Raises ``CameraLost`` if the camera is still not answering at the deadline.
-        """
-        deadline = time.monotonic() + timeout_s
-        with self._lock:
-            if not self._lost:
-                self._mark_lost()
-            while True:
-                try:
-                    self._reopen_once()
-                    return
-                except CameraLost:
-                    if time.monotonic() >= deadline:
-                        raise
-                threading.Event().wait(min(0.2, max(0.0, deadline - time.monotonic())))
-
     # ------------------------------------------------------------------ internals
 
-    def _require_open(self) -> None:
-        if not self.is_open:
-            raise CameraError("the camera is not open; call open() first", device=self.label)
-
-    def _session(self) -> SfncCamera:
-        """The live session, reopening once if the camera was lost or rebooted."""
-        self._require_open()
+    def _notice_loss(self) -> None:
+        """The Aravis heartbeat saw the control channel lost (camera rebooted?)."""
         if not self._lost and self._control_lost.is_set():
             log.warning("%s: control channel lost (camera rebooted?); reopening", self.label)
             self._mark_lost()
-        if self._lost:
-            self._reopen_once()
-        assert self._sfnc is not None
-        return self._sfnc
 
-    @contextmanager
-    def _gerrors(self, feature: str) -> Iterator[None]:
+    def _drop_for_reconnect(self) -> None:
+        if not self._lost:
+            self._mark_lost()
+
+    def _gerrors(self, feature: str) -> AbstractContextManager[None]:
         """Translate Aravis GLib errors into typed camera errors."""
-        glib = _aravis().GLib
-        try:
-            yield
-        except glib.Error as exc:
-            domain, code, text = exc.domain, exc.code, exc.message
-            if domain == "arv-device-error-quark":
-                if code in (_DEVICE_TIMEOUT, _DEVICE_NOT_CONNECTED, _DEVICE_TRANSFER):
-                    self._mark_lost()
-                    raise CameraLost(
-                        f"the camera stopped answering ({feature}: {text})", device=self.label
-                    ) from None
-                if code == _DEVICE_FEATURE_NOT_FOUND:
-                    raise FeatureMissing(
-                        f"the camera does not offer {feature!r} ({text})",
-                        feature=feature,
-                        device=self.label,
-                    ) from None
-                if code in (_DEVICE_NOT_CONTROLLER, _DEVICE_ACCESS_DENIED):
-                    raise CameraBusy(
-                        f"the camera refused {feature} ({text}): control was taken over",
-                        device=self.label,
-                    ) from None
-            elif domain == "arv-gc-error-quark":
-                if code in (_GC_NODE_NOT_FOUND, _GC_ENTRY_NOT_FOUND, _GC_READ_ONLY):
-                    raise FeatureMissing(
-                        f"{feature}: {text}", feature=feature, device=self.label
-                    ) from None
-                if code == _GC_OUT_OF_RANGE:
-                    raise InvalidSetting(f"{feature}: {text}", device=self.label) from None
-            raise CameraError(f"{feature}: {text} ({domain} {code})", device=self.label) from None
+        return glib_errors(_aravis().GLib, feature, self.label, self._mark_lost)
 
     def _open_session(self) -> None:
         ar = _aravis()
@@ -530,7 +265,7 @@ class AravisCamera(CameraContext):
         try:
             self._signal_id = self._device.connect("control-lost", self._on_control_lost)
             self.warnings = setup_transport(ar, conn, self.transport, self.label, self._gerrors)
-            self._sfnc = SfncCamera(_AravisNodes(self), self.label)
+            self._sfnc = SfncCamera(AravisNodes(self, ar), self.label)
             no_packet_size = TransportSettings(
                 packet_size=None,
                 throughput_limit_bps=self.transport.throughput_limit_bps
@@ -548,18 +283,9 @@ class AravisCamera(CameraContext):
                         device=self.label,
                         hint="camera.address and camera.serial in the station config",
                     )
-            self._sfnc.setup_software_trigger()
-            self._info = self._sfnc.read_info(backend=self.backend)
-            if self._requested is not None:
-                self._applied = self._sfnc.apply(self._requested)
-            else:
-                self._applied = self._sfnc.read_settings()
+            self._set_up_session(self._sfnc)
         except BaseException:
-            objects = [self._stream, self._camera, self._device]
-            self._disconnect_signal()
-            self._stream = self._camera = self._device = None
-            self._sfnc = None
-            drop_all(objects)
+            drop_all(self._detach())
             raise
         self._lost = False
 
@@ -567,10 +293,16 @@ class AravisCamera(CameraContext):
         """Aravis heartbeat thread: the camera no longer lists us as controller."""
         self._control_lost.set()
 
-    def _disconnect_signal(self) -> None:
+    def _detach(self) -> list[Any]:
+        """Forget the session (stream, camera, device, in that order; the control-lost
+        signal disconnected); the caller releases the returned objects."""
+        objects = [self._stream, self._camera, self._device]
         if self._signal_id is not None and self._device is not None:
             self._device.disconnect(self._signal_id)
         self._signal_id = None
+        self._stream = self._camera = self._device = None
+        self._sfnc = None
+        return objects
 
     def _ensure_streaming(self) -> None:
         if self._streaming:
@@ -597,7 +329,7 @@ class AravisCamera(CameraContext):
             self._camera.start_acquisition()
         self._streaming = True
 
-    def _stop_streaming(self) -> None:
+    def _stop_acquisition(self) -> None:
         if self._streaming:
             self._streaming = False
             with self._gerrors("AcquisitionStop"):
@@ -610,28 +342,14 @@ class AravisCamera(CameraContext):
 
     def _probe_lost(self) -> bool:
         """After a frame timeout: is the camera gone (or no longer ours)?"""
-        if self._control_lost.is_set():
-            return True
-        ar = _aravis()
-        if not isinstance(self._device, ar.Aravis.GvDevice):
-            return False
-        if not self._device.is_controller():
-            return True
-        try:
-            ccp = self._device.read_register(GVBS_CONTROL_CHANNEL_PRIVILEGE)
-        except ar.GLib.Error:
-            return True
-        return (int(ccp) & 0x3) == 0
+        return self._control_lost.is_set() or control_is_lost(_aravis(), self._device)
 
     def _mark_lost(self) -> None:
         """Forget the session; its objects are released on a background thread because
         their finalizers write to the absent camera (several GVCP timeouts)."""
         self._lost = True
         self._streaming = False
-        objects = [o for o in (self._stream, self._camera, self._device) if o is not None]
-        self._disconnect_signal()
-        self._stream = self._camera = self._device = None
-        self._sfnc = None
+        objects = [o for o in self._detach() if o is not None]
         if objects:
             disposer = threading.Thread(
                 target=drop_all, args=(objects,), name="aravis-release", daemon=True
@@ -649,14 +367,7 @@ class AravisCamera(CameraContext):
         while self._disposers:
             self._disposers[0].join(timeout=max(0.0, deadline - time.monotonic()))
             self._disposers.pop(0)
-        try:
-            self._open_session()
-        except (CameraNotFound, CameraLost, CameraBusy) as exc:
-            self._lost = True
-            raise CameraLost(
-                f"the camera is not available again yet ({exc.message})",
-                device=self.label,
-            ) from None
+        self._open_again("the camera is not available again yet")
         log.info("%s: reconnected", self.label)
 
 

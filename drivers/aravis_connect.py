@@ -4,7 +4,7 @@ Used by :class:`drivers.aravis_camera.AravisCamera` (its module docstring says h
 camera is found and why discovery is off). The Aravis namespace (``ar``: the
 ``Aravis``, ``Gio`` and ``GLib`` modules of PyGObject) is passed in, so this module
 imports no camera library itself; ``gerrors`` is the camera's translation of GLib
-errors into typed camera errors (:data:`drivers.aravis_frames.GErrors`).
+errors into typed camera errors (:data:`drivers.genicam_camera.GErrors`).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import types
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.aravis_frames import GErrors
 from drivers.camera import TransportSettings
 from drivers.camera_errors import CameraBusy, CameraNotFound
+from drivers.genicam_camera import GErrors
 from drivers.gige_host import (
     GVBS_CONTROL_CHANNEL_PRIVILEGE,
     gvcp_read_register,
@@ -118,6 +118,21 @@ def connect(
             f"the camera at {ip} answers but another application controls it", device=label
         )
     return Connection(device, ar.Aravis.Camera.new_with_device(device), ip)
+
+
+def control_is_lost(ar: types.SimpleNamespace, device: Any) -> bool:
+    """After a frame timeout: does the GigE Vision camera on ``device`` no longer list us
+    as its controller, or no longer answer a read of its control channel privilege?
+    (False for a device that is not GigE Vision.)"""
+    if not isinstance(device, ar.Aravis.GvDevice):
+        return False
+    if not device.is_controller():
+        return True
+    try:
+        ccp = device.read_register(GVBS_CONTROL_CHANNEL_PRIVILEGE)
+    except ar.GLib.Error:
+        return True
+    return (int(ccp) & 0x3) == 0
 
 
 def _connect_usb3(ar: types.SimpleNamespace, name: str | None, label: str) -> Connection:

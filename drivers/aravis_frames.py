@@ -12,27 +12,16 @@ import ctypes.util
 import logging
 import time
 import types
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from typing import Any
 
 import numpy as np
 
-from drivers.camera import (
-    SOFTWARE_TRIGGER,
-    CameraInfo,
-    CameraSettings,
-    Frame,
-    bit_depth,
-    decode_mono,
-    pixel_format_name,
-)
-from drivers.camera_errors import CameraError, IncompleteFrame, InvalidSetting
+from drivers.camera import CameraInfo, CameraSettings, Frame, decode_mono, pixel_format_name
+from drivers.camera_errors import IncompleteFrame
+from drivers.genicam_camera import GErrors
+from drivers.genicam_frames import delivered_bit_depth, settings_frame
 
 log = logging.getLogger(__name__)
-
-GErrors = Callable[[str], AbstractContextManager[None]]
-"""The camera's translation of Aravis GLib errors for an operation named by a feature."""
 
 
 class _ImageCopier:
@@ -134,14 +123,7 @@ def buffer_to_frame(
         )
     pixel_format = pixel_format_name(int(buffer.get_image_pixel_format()))
     width, height = int(buffer.get_image_width()), int(buffer.get_image_height())
-    try:
-        depth = bit_depth(pixel_format)
-    except InvalidSetting:
-        raise CameraError(
-            f"frame {frame_id} is {pixel_format}, which the drivers do not decode",
-            device=label,
-            hint="configure a Mono8/10/12/14/16 or Mono10p/12p/12Packed pixel format",
-        ) from None
+    depth = delivered_bit_depth(pixel_format, frame_id=frame_id, label=label)
     pixels = decode_mono(
         image_array(buffer),
         width=width,
@@ -151,23 +133,19 @@ def buffer_to_frame(
         frame_id=frame_id,
         copy=False,
     )
-    return Frame(
-        pixels=pixels,
+    return settings_frame(
+        pixels,
         frame_id=frame_id,
         timestamp_ns=int(buffer.get_timestamp()),
         host_timestamp_ns=int(buffer.get_system_timestamp()) or time.time_ns(),
-        exposure_us=applied.exposure_us if applied else None,
-        gain=applied.gain if applied else None,
         pixel_format=pixel_format,
         width=width,
         height=height,
         offset_x=int(buffer.get_image_x()),
         offset_y=int(buffer.get_image_y()),
-        bit_depth=depth,
-        device=label,
-        gain_feature=info.gain_feature if info else None,
-        black_level=applied.black_level if applied else None,
+        depth=depth,
+        applied=applied,
+        info=info,
         temperature_c=temperature_c,
-        trigger=applied.trigger if applied else SOFTWARE_TRIGGER,
-        flat_field=applied.flat_field if applied else None,
+        label=label,
     )

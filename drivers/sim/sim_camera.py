@@ -28,7 +28,10 @@ The camera knows nothing about plenoptic optics: what it sees is a :class:`Scene
 injected by the caller.  With ``frame_cache=DIR`` (``[camera] frame_cache``) the camera
 keeps its rendered frames on disk and reuses them for the same bench state
 (:class:`drivers.sim.frame_cache.CachedScene`): the cache is the simulated camera's own
-business, nothing outside it knows.
+business, nothing outside it knows.  :class:`Scene`, :class:`SceneState`,
+:data:`StateSource` and the rendering of one frame are in :mod:`drivers.sim.scene`
+(re-exported here); the error wording of the checks is the GenICam backends'
+(:mod:`drivers.sfnc_features`, :mod:`drivers.sfnc_roi`).
 
 Trigger: software only (``trigger="software"``; a line trigger raises
 ``FeatureMissing``).  ``DeviceTemperature``: :attr:`SimulatedCamera.sensor_temperature_c`
@@ -52,12 +55,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Literal, Protocol
-
-import numpy as np
-from numpy.typing import NDArray
+from typing import Literal
 
 from drivers.camera import (
     SOFTWARE_TRIGGER,
@@ -73,74 +71,17 @@ from drivers.camera_errors import (
     CameraLost,
     CameraNotFound,
     CameraTimeout,
-    FeatureMissing,
     IncompleteFrame,
     InvalidSetting,
 )
+from drivers.sfnc_features import missing_entry, out_of_range
+from drivers.sfnc_roi import check_roi_fits
+from drivers.sim.scene import Scene, SceneState, StateSource, render_frame
 
 SIM_PIXEL_FORMATS: tuple[str, ...] = ("Mono8", "Mono12", "Mono16")
 """Pixel formats the simulated camera offers."""
 
 FaultKind = Literal["timeout", "incomplete", "lost"]
-
-
-@dataclass(frozen=True)
-class SceneState:
-    """The physical state the camera images at one instant.
-
-    Attributes:
-        object_distance_mm: board-to-main-lens distance u (mm).
-        board_offset_mm: where the board origin (standard corner) sits relative to the
-            optical axis, in board X/Y (mm).
-        white: True when the plain light area of the board fills the view (flat field).
-    """
-
-    object_distance_mm: float
-    board_offset_mm: tuple[float, float] = (0.0, 0.0)
-    white: bool = False
-
-
-class Scene(Protocol):
-    """What the simulated camera images: a sensor and a renderer of raw counts."""
-
-    @property
-    def name(self) -> str:
-        """Short name of the scene (e.g. the simulator preset), used in the camera model."""
-        ...
-
-    @property
-    def sensor_size_px(self) -> tuple[int, int]:
-        """Full sensor ``(width, height)`` in px."""
-        ...
-
-    @property
-    def bit_depth(self) -> int:
-        """Native bits per pixel of the sensor's ADC."""
-        ...
-
-    @property
-    def board_half_extent_mm(self) -> float:
-        """Half-size of the board's patterned area (mm): beyond it the board is plain light."""
-        ...
-
-    def render(
-        self,
-        state: SceneState,
-        *,
-        roi: tuple[int, int, int, int],
-        seed: Sequence[int],
-        bit_depth: int,
-        exposure_scale: float,
-        gain_db: float,
-    ) -> NDArray[np.uint16]:
-        """Raw counts of the window ``roi = (x, y, width, height)`` (px), right-aligned at
-        ``bit_depth`` bits, with the signal scaled by ``exposure_scale`` (1 = reference
-        exposure) and the conversion gain by ``gain_db`` (dB); noise seeded by ``seed``."""
-        ...
-
-
-StateSource = Callable[[], SceneState]
-"""Returns the scene state now (called once per grab)."""
 
 
 class SimulatedCamera(CameraContext):
@@ -297,23 +238,12 @@ class SimulatedCamera(CameraContext):
             bit_depth(settings.pixel_format)  # InvalidSetting for formats nobody decodes
             self._require_open()
             if settings.pixel_format not in SIM_PIXEL_FORMATS:
-                raise FeatureMissing(
-                    f"PixelFormat has no entry {settings.pixel_format!r}; offered: "
-                    f"{', '.join(SIM_PIXEL_FORMATS)}",
-                    feature="PixelFormat",
-                    value=settings.pixel_format,
-                    offered=SIM_PIXEL_FORMATS,
-                    device=self.label,
-                    hint="choose one of the offered PixelFormat values",
+                raise missing_entry(
+                    "PixelFormat", settings.pixel_format, SIM_PIXEL_FORMATS, device=self.label
                 )
             width, height = self._scene.sensor_size_px
             roi = settings.roi if settings.roi is not None else Roi(width, height)
-            if roi.offset_x + roi.width > width or roi.offset_y + roi.height > height:
-                raise InvalidSetting(
-                    f"ROI {roi} does not fit the {width}x{height} sensor",
-                    device=self.label,
-                    hint="offset + size <= sensor size",
-                )
+            check_roi_fits(roi, width, height, device=self.label)
             exposure = self._settings.exposure_us
             if settings.exposure_us is not None:
                 exposure = self._check_range(
@@ -323,11 +253,10 @@ class SimulatedCamera(CameraContext):
             if settings.gain is not None:
                 gain = self._check_range("Gain", settings.gain, self._gain_limits)
             if settings.trigger != SOFTWARE_TRIGGER:
-                raise FeatureMissing(
-                    f"TriggerSource has no entry {settings.trigger!r}; offered: Software",
-                    feature="TriggerSource",
-                    value=settings.trigger,
-                    offered=("Software",),
+                raise missing_entry(
+                    "TriggerSource",
+                    settings.trigger,
+                    ("Software",),
                     device=self.label,
                     hint='the simulated camera has the software trigger only: trigger = "software"',
                 )
@@ -424,68 +353,24 @@ class SimulatedCamera(CameraContext):
     def _check_range(self, name: str, value: float, limits: tuple[float, float]) -> float:
         lo, hi = limits
         if not (math.isfinite(value) and lo <= value <= hi):
-            raise InvalidSetting(
-                f"{name}={value:g} is outside the camera's range [{lo:g}, {hi:g}]",
-                device=self.label,
-                hint=f"a {name} within [{lo:g}, {hi:g}]",
-            )
+            raise out_of_range(name, value, lo, hi, device=self.label)
         return float(value)
 
     def _render(self, frame_id: int, settings: CameraSettings, timestamp_ns: int) -> Frame:
         """The frame of the state now, with ``settings``; ``timestamp_ns``: the trigger."""
-        assert settings.roi is not None and settings.exposure_us is not None
-        assert settings.gain is not None
-        roi = settings.roi
-        fmt = settings.pixel_format
-        depth = bit_depth(fmt)
-        native = self._scene.bit_depth
-        render_depth = native if depth == 8 else depth
-        try:
-            state = self._state()
-        except CameraError:
-            raise
-        except Exception as exc:  # a DeviceError of the bench, a KeyError ...
-            raise CameraError(
-                f"cannot read the simulated bench's state: {exc}", device=self.label
-            ) from exc
-        try:
-            counts = self._scene.render(
-                state,
-                roi=(roi.offset_x, roi.offset_y, roi.width, roi.height),
-                seed=[self.seed, frame_id],
-                bit_depth=render_depth,
-                exposure_scale=settings.exposure_us / self.reference_exposure_us,
-                gain_db=settings.gain,
-            )
-        except ValueError as exc:
-            raise CameraError(
-                f"the simulated scene cannot be rendered at {state}: {exc}",
-                device=self.label,
-                hint="the rail geometry (zero_object_distance_mm, direction) in the config",
-            ) from exc
-        if depth == 8:
-            pixels: np.ndarray = (counts >> max(0, render_depth - 8)).astype(np.uint8)
-        else:
-            pixels = np.ascontiguousarray(counts, dtype=np.uint16)
-        self.last_state = state
-        return Frame(
-            pixels=pixels,
+        frame, state = render_frame(
+            self._scene,
+            self._state,
             frame_id=frame_id,
+            settings=settings,
             timestamp_ns=timestamp_ns,
-            host_timestamp_ns=time.time_ns(),
-            exposure_us=settings.exposure_us,
-            gain=settings.gain,
-            pixel_format=fmt,
-            width=roi.width,
-            height=roi.height,
-            offset_x=roi.offset_x,
-            offset_y=roi.offset_y,
-            bit_depth=depth,
-            device=self.label,
-            gain_feature="Gain",
-            temperature_c=self.sensor_temperature_c,
-            flat_field="off",
+            seed=self.seed,
+            reference_exposure_us=self.reference_exposure_us,
+            temperature_c=lambda: self.sensor_temperature_c,
+            label=self.label,
         )
+        self.last_state = state
+        return frame
 
 
 __all__ = [
