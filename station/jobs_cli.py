@@ -352,15 +352,10 @@ def _when(t: float) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
 
 
-def jobs_main(argv: Sequence[str] | None = None) -> int:
-    """``lfcal jobs``: list the stored jobs (or show one); returns the exit code."""
-    from station.db import StoreError
+def _jobs_database(args: argparse.Namespace, err: TextIO) -> str | Path | None:
+    """The database of ``--db`` or of ``--config``'s station; None (reported) when unusable."""
     from station.db_postgres import is_postgres_url
-    from station.ownership import live_stations, station_alive
-    from station.store import ACTIVE_STATES, JobNotFound, JobState, JobStore
 
-    args = _jobs_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    out, err = sys.stdout, sys.stderr
     db: str | Path
     if args.db is not None:
         db = args.db if is_postgres_url(args.db) else Path(args.db)
@@ -369,86 +364,91 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
 
         config = load_config_or_report(args.config, "lfcal jobs", err)
         if config is None:
-            return EXIT_BAD_INPUT
+            return None
         db = config.storage.database
     if isinstance(db, Path) and not db.is_file():
         err.write(f"lfcal jobs: no job database at {db} (no job has run yet)\n")
-        return EXIT_BAD_INPUT
-    if args.results and args.job is None:
-        err.write("lfcal jobs: --results needs a JOB\n")
-        return EXIT_BAD_INPUT
-    states = None
-    if args.state:
-        try:
-            states = {JobState(s) for s in args.state}
-        except ValueError:
-            valid = ", ".join(s.value for s in JobState)
-            err.write(f"lfcal jobs: --state must be one of {valid}\n")
-            return EXIT_BAD_INPUT
+        return None
+    return db
+
+
+def _job_detail(job: Any, frames: int, transitions: list[Any]) -> dict[str, Any]:
+    """One job with its sweep and transitions (``lfcal jobs --json JOB``)."""
+    return {
+        **_job_dict(job, frames),
+        "request": job.request,
+        "updated_at": job.updated_at,
+        "has_result": job.has_result,
+        "transitions": [
+            {
+                "from": t.from_state.value if t.from_state else None,
+                "to": t.to_state.value,
+                "at": t.at,
+                "reason": t.reason,
+            }
+            for t in transitions
+        ],
+    }
+
+
+def _show_job(store: Any, args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
+    """``lfcal jobs JOB [--results]``: one job with its transitions (or its results)."""
+    from station.store import JobNotFound, JobState
+
     try:
-        store = JobStore(db, station_id="")
-    except StoreError as exc:
+        job = store.get_job(args.job, with_result=True)
+    except JobNotFound as exc:
         err.write(f"lfcal jobs: {exc}\n")
         return EXIT_BAD_INPUT
-    with store:
-        if args.job is not None:
-            try:
-                job = store.get_job(args.job, with_result=True)
-            except JobNotFound as exc:
-                err.write(f"lfcal jobs: {exc}\n")
-                return EXIT_BAD_INPUT
-            if args.results:
-                return _show_results(store, job.id, args.json, out)
-            frames = store.step_count(job.id)
-            transitions = store.transitions(job.id)
-            if args.json:
-                data = {
-                    **_job_dict(job, frames),
-                    "request": job.request,
-                    "updated_at": job.updated_at,
-                    "has_result": job.has_result,
-                    "transitions": [
-                        {
-                            "from": t.from_state.value if t.from_state else None,
-                            "to": t.to_state.value,
-                            "at": t.at,
-                            "reason": t.reason,
-                        }
-                        for t in transitions
-                    ],
-                }
-                out.write(json.dumps(data, indent=1) + "\n")
-                return EXIT_OK
-            out.write(f"job {job.id}: {job.state.value}, {frames}/{job.frames_total} frames\n")
-            out.write(f"  station: {job.station_id or '-'}, camera {job.camera_serial or '-'}\n")
-            out.write(f"  sweep: {json.dumps(job.request)}\n")
-            out.write(f"  archive: {job.archive_dir}\n")
-            if job.archive_url:
-                uploaded = "uploaded" if job.archive_uploaded_at else "not completely uploaded yet"
-                out.write(f"  archive URL: {job.archive_url} ({uploaded})\n")
-            if job.last_error:
-                out.write(f"  last error: {job.last_error}\n")
-            for t in transitions:
-                frm = t.from_state.value if t.from_state else "-"
-                out.write(f"  {_when(t.at)}  {frm:>11} -> {t.to_state.value:<11} {t.reason}\n")
-            if job.result is not None and job.state is JobState.SUCCEEDED:
-                _print_result(out, job.result)
-            return EXIT_OK
-        try:
-            jobs = store.list_jobs(
-                states=states, station=args.station, camera_serial=args.camera_serial
-            )
-            counts = {j.id: store.step_count(j.id) for j in jobs}
-            live = live_stations(store)
-            # a reader is no station: liveness only where the database can tell (PostgreSQL)
-            alive = {
-                j.id: None if live is None else station_alive(store, j.station_id, live)
-                for j in jobs
-            }
-        except StoreError as exc:
-            err.write(f"lfcal jobs: {exc}\n")
-            return EXIT_BAD_INPUT
+    if args.results:
+        return _show_results(store, job.id, args.json, out)
+    frames = store.step_count(job.id)
+    transitions = store.transitions(job.id)
     if args.json:
+        out.write(json.dumps(_job_detail(job, frames, transitions), indent=1) + "\n")
+        return EXIT_OK
+    out.write(f"job {job.id}: {job.state.value}, {frames}/{job.frames_total} frames\n")
+    out.write(f"  station: {job.station_id or '-'}, camera {job.camera_serial or '-'}\n")
+    out.write(f"  sweep: {json.dumps(job.request)}\n")
+    out.write(f"  archive: {job.archive_dir}\n")
+    if job.archive_url:
+        uploaded = "uploaded" if job.archive_uploaded_at else "not completely uploaded yet"
+        out.write(f"  archive URL: {job.archive_url} ({uploaded})\n")
+    if job.last_error:
+        out.write(f"  last error: {job.last_error}\n")
+    for t in transitions:
+        frm = t.from_state.value if t.from_state else "-"
+        out.write(f"  {_when(t.at)}  {frm:>11} -> {t.to_state.value:<11} {t.reason}\n")
+    if job.result is not None and job.state is JobState.SUCCEEDED:
+        _print_result(out, job.result)
+    return EXIT_OK
+
+
+def _query_jobs(
+    store: Any, states: set[Any] | None, args: argparse.Namespace
+) -> tuple[list[Any], dict[int, int], dict[int, bool | None]]:
+    """The matching jobs, their frame counts and whether their stations are alive."""
+    from station.ownership import live_stations, station_alive
+
+    jobs = store.list_jobs(states=states, station=args.station, camera_serial=args.camera_serial)
+    counts = {j.id: store.step_count(j.id) for j in jobs}
+    live = live_stations(store)
+    # a reader is no station: liveness only where the database can tell (PostgreSQL)
+    alive = {j.id: None if live is None else station_alive(store, j.station_id, live) for j in jobs}
+    return jobs, counts, alive
+
+
+def _print_jobs(
+    jobs: list[Any],
+    counts: dict[int, int],
+    alive: dict[int, bool | None],
+    as_json: bool,
+    out: TextIO,
+) -> int:
+    """``lfcal jobs``: the listing as a table (or JSON)."""
+    from station.store import ACTIVE_STATES
+
+    if as_json:
         rows = [_job_dict(j, counts[j.id], alive[j.id]) for j in jobs]
         out.write(json.dumps(rows, indent=1) + "\n")
         return EXIT_OK
@@ -473,6 +473,43 @@ def jobs_main(argv: Sequence[str] | None = None) -> int:
             f"{j.state.value:<11} {done:>9}  {_when(j.created_at)}  {tail}\n"
         )
     return EXIT_OK
+
+
+def jobs_main(argv: Sequence[str] | None = None) -> int:
+    """``lfcal jobs``: list the stored jobs (or show one); returns the exit code."""
+    from station.db import StoreError
+    from station.store import JobState, JobStore
+
+    args = _jobs_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    out, err = sys.stdout, sys.stderr
+    db = _jobs_database(args, err)
+    if db is None:
+        return EXIT_BAD_INPUT
+    if args.results and args.job is None:
+        err.write("lfcal jobs: --results needs a JOB\n")
+        return EXIT_BAD_INPUT
+    states = None
+    if args.state:
+        try:
+            states = {JobState(s) for s in args.state}
+        except ValueError:
+            valid = ", ".join(s.value for s in JobState)
+            err.write(f"lfcal jobs: --state must be one of {valid}\n")
+            return EXIT_BAD_INPUT
+    try:
+        store = JobStore(db, station_id="")
+    except StoreError as exc:
+        err.write(f"lfcal jobs: {exc}\n")
+        return EXIT_BAD_INPUT
+    with store:
+        if args.job is not None:
+            return _show_job(store, args, out, err)
+        try:
+            jobs, counts, alive = _query_jobs(store, states, args)
+        except StoreError as exc:
+            err.write(f"lfcal jobs: {exc}\n")
+            return EXIT_BAD_INPUT
+    return _print_jobs(jobs, counts, alive, args.json, out)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

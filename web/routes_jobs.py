@@ -52,14 +52,53 @@ def station_of(request: Request) -> Orchestrator:
     return station
 
 
-def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRouter:
-    """The job routes for a station whose sweep body model is ``body_model``.
+def _submit_job(station: Orchestrator, data: dict[str, Any], idempotency_key: str | None) -> JobOut:
+    """Queue the sweep ``data`` on ``station``, its errors mapped to HTTP."""
+    with station_errors():
+        try:
+            status = station.submit(data, idempotency_key=idempotency_key)
+        except JobNotFound as exc:
+            message = f"there is no job {exc.job_id} to take the white image from"
+            raise ApiError(
+                422,
+                "invalid_request",
+                f"the sweep cannot run: white_from_job: {message}",
+                fields=[("white_from_job", message)],
+            ) from None
+        except RuntimeError as exc:
+            raise ApiError(503, "station_stopping", str(exc)) from None
+    return job_out(status)
 
-    ``read_key``: read-only routes require the API key too (OpenAPI security).
-    """
-    write = [Depends(check_key)]
-    read = write if read_key else []
-    router = APIRouter(prefix=API, tags=["jobs"])
+
+def _job_list(
+    station: Orchestrator,
+    *,
+    states: list[JobState] | None,
+    limit: int,
+    station_id: str | None,
+    camera_serial: str | None,
+) -> JobList:
+    """The newest ``limit`` matching jobs of the fleet, oldest first, with ``station_alive``."""
+    with station_errors():
+        records = station.store.list_jobs(
+            states=set(states) if states else None,
+            station=station_id,
+            camera_serial=camera_serial,
+        )[-limit:]
+        live = live_stations(station.store)
+    out = []
+    for record in records:
+        try:
+            job = job_out(station.status(record.id))
+        except KeyError:  # vanished meanwhile (never in practice: jobs are not deleted)
+            continue
+        job.station_alive = station_alive(station.store, record.station_id, live)
+        out.append(job)
+    return JobList(jobs=out)
+
+
+def _add_submit_route(router: APIRouter, body_model: type[BaseModel], write: list[Any]) -> None:
+    """``POST /jobs``."""
 
     @router.post(
         "/jobs",
@@ -82,23 +121,14 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         holding the job database or the archives is full; 503 when the database cannot
         be written or the station is stopping.
         """
-        station = station_of(request)
         data: dict[str, Any] = {} if body is None else body.model_dump(exclude_none=True)
-        with station_errors():
-            try:
-                status = station.submit(data, idempotency_key=idempotency_key)
-            except JobNotFound as exc:
-                message = f"there is no job {exc.job_id} to take the white image from"
-                raise ApiError(
-                    422,
-                    "invalid_request",
-                    f"the sweep cannot run: white_from_job: {message}",
-                    fields=[("white_from_job", message)],
-                ) from None
-            except RuntimeError as exc:
-                raise ApiError(503, "station_stopping", str(exc)) from None
-        response.headers["Location"] = f"{API}/jobs/{status.id}"
-        return job_out(status)
+        job = _submit_job(station_of(request), data, idempotency_key)
+        response.headers["Location"] = f"{API}/jobs/{job.id}"
+        return job
+
+
+def _add_list_route(router: APIRouter, read: list[Any]) -> None:
+    """``GET /jobs``."""
 
     @router.get(
         "/jobs",
@@ -131,23 +161,17 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
         """Jobs of every station sharing the database (the fleet view), oldest first;
         the newest ``limit`` of them, each with ``station_alive``: whether its
         station's process is running."""
-        station = station_of(request)
-        with station_errors():
-            records = station.store.list_jobs(
-                states=set(state) if state else None,
-                station=station_id,
-                camera_serial=camera_serial,
-            )[-limit:]
-            live = live_stations(station.store)
-        out = []
-        for record in records:
-            try:
-                job = job_out(station.status(record.id))
-            except KeyError:  # vanished meanwhile (never in practice: jobs are not deleted)
-                continue
-            job.station_alive = station_alive(station.store, record.station_id, live)
-            out.append(job)
-        return JobList(jobs=out)
+        return _job_list(
+            station_of(request),
+            states=state,
+            limit=limit,
+            station_id=station_id,
+            camera_serial=camera_serial,
+        )
+
+
+def _add_status_route(router: APIRouter, read: list[Any]) -> None:
+    """``GET /jobs/{id}`` (its plain successful case is answered before the router)."""
 
     @router.get(
         "/jobs/{job_id}",
@@ -163,44 +187,62 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
             body = bodies.body(job_id)
         return Response(body, media_type="application/json")
 
-    def _action(name: str, summary: str, doc: str) -> None:
-        def handler(request: Request, job_id: JobId) -> JobOut:
-            station = station_of(request)
-            with station_errors():
-                try:
-                    status = getattr(station, name)(job_id)
-                except RuntimeError as exc:  # shutting down
-                    raise ApiError(503, "station_stopping", str(exc)) from None
-            return job_out(status)
 
-        handler.__name__ = f"{name}_job"
-        handler.__doc__ = doc
-        router.add_api_route(
-            f"/jobs/{{job_id}}/{name}",
-            handler,
-            methods=["POST"],
-            response_model=JobOut,
-            dependencies=write,
-            responses=error_responses(400, 401, 403, 404, 408, 409, 413, 415, 422, 503, 507),
-            summary=summary,
-        )
+def _add_action_route(
+    router: APIRouter, write: list[Any], name: str, summary: str, doc: str
+) -> None:
+    """``POST /jobs/{id}/<name>``: the station's method ``name`` on the job."""
 
-    _action(
+    def handler(request: Request, job_id: JobId) -> JobOut:
+        station = station_of(request)
+        with station_errors():
+            try:
+                status = getattr(station, name)(job_id)
+            except RuntimeError as exc:  # shutting down
+                raise ApiError(503, "station_stopping", str(exc)) from None
+        return job_out(status)
+
+    handler.__name__ = f"{name}_job"
+    handler.__doc__ = doc
+    router.add_api_route(
+        f"/jobs/{{job_id}}/{name}",
+        handler,
+        methods=["POST"],
+        response_model=JobOut,
+        dependencies=write,
+        responses=error_responses(400, 401, 403, 404, 408, 409, 413, 415, 422, 503, 507),
+        summary=summary,
+    )
+
+
+def _add_action_routes(router: APIRouter, write: list[Any]) -> None:
+    """``POST /jobs/{id}/pause``, ``.../resume`` and ``.../cancel``."""
+    _add_action_route(
+        router,
+        write,
         "pause",
         "Pause a running job",
         "Pause at the next step boundary (409 unless running; pausing a paused job is a no-op).",
     )
-    _action(
+    _add_action_route(
+        router,
+        write,
         "resume",
         "Resume a paused job (or re-queue an interrupted/failed one)",
         "Resume a paused job, or re-queue an interrupted or failed one (409 otherwise).",
     )
-    _action(
+    _add_action_route(
+        router,
+        write,
         "cancel",
         "Cancel a job",
         "Cancel: queued or interrupted at once, running or paused at the next step boundary "
         "(409 for a finished job).",
     )
+
+
+def _add_result_routes(router: APIRouter, read: list[Any]) -> None:
+    """``GET /jobs/{id}/result`` and ``GET /jobs/{id}/results``."""
 
     @router.get(
         "/jobs/{job_id}/result",
@@ -248,6 +290,21 @@ def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRout
             versions=[ResultVersionOut.model_validate(v.to_dict()) for v in versions]
         )
 
+
+def build_jobs_router(body_model: type[BaseModel], *, read_key: bool) -> APIRouter:
+    """The job routes for a station whose sweep body model is ``body_model``.
+
+    ``read_key``: read-only routes require the API key too (OpenAPI security).
+    Registered in this order: submit, list, status, pause/resume/cancel, results.
+    """
+    write = [Depends(check_key)]
+    read = write if read_key else []
+    router = APIRouter(prefix=API, tags=["jobs"])
+    _add_submit_route(router, body_model, write)
+    _add_list_route(router, read)
+    _add_status_route(router, read)
+    _add_action_routes(router, write)
+    _add_result_routes(router, read)
     return router
 
 

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import base64
 import binascii
+import functools
+import pathlib
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Request
@@ -85,10 +87,72 @@ def _station(request: Request) -> Orchestrator:
     return station
 
 
-def build_lab_router(*, read_key: bool) -> APIRouter:
-    """``/render``, ``/jobs/{id}/report.html`` and ``/jobs/{id}/frames/{i}/corners``."""
-    read_deps = [Depends(check_key)] if read_key else []
-    router = APIRouter(prefix=API, tags=["using a calibration"])
+def _calibrated_camera(station: Orchestrator, body: RenderRequest) -> CalibratedCamera:
+    """The camera model of the request's calibration: the job's result or the one sent."""
+    if (body.job_id is None) == (body.result is None):
+        raise ApiError(
+            422,
+            "invalid_request",
+            "give exactly one of job_id (a job's calibration) or result (an lfcal-result/1)",
+            fields=[("job_id", "exactly one of job_id and result")],
+        )
+    if body.job_id is not None:
+        with station_errors():
+            result = station.result(body.job_id)
+    else:
+        assert body.result is not None
+        result = body.result
+    try:
+        return CalibratedCamera.from_result(result)
+    except ResultError as exc:
+        raise ApiError(422, "invalid_result", str(exc), fields=[("result", str(exc))]) from None
+
+
+async def _rendered_response(
+    camera: CalibratedCamera,
+    body: RenderRequest,
+    raw_bytes: bytes,
+    white_bytes: bytes | None,
+    designed: float | None,
+) -> Response:
+    """Decode and render the upload in the thread pool; the PNG with the patch headers."""
+
+    def work() -> tuple[bytes, Any]:
+        raw = decode_raw(raw_bytes, name="the uploaded image")
+        white = None if white_bytes is None else decode_raw(white_bytes, name="the white image")
+        patch = choose_patch(
+            camera,
+            body.p,
+            object_distance_mm=body.object_distance_mm,
+            designed_px=designed,
+        )
+        rendered = render_frame_with(raw, camera, patch, white=white)
+        return render_png(None, rendered.image), rendered
+
+    try:
+        data, rendered = await run_in_threadpool(work)
+    except RawImageError as exc:
+        raise ApiError(
+            422, "invalid_image", str(exc), fields=[("image_base64", str(exc))]
+        ) from None
+    except FrameMismatch as exc:
+        raise ApiError(422, "frame_mismatch", str(exc)) from None
+    except ValueError as exc:
+        raise ApiError(422, "cannot_render", str(exc), fields=[("p", str(exc))]) from None
+    return Response(
+        content=data,
+        media_type="image/png",
+        headers={
+            "Cache-Control": "no-store",
+            "X-Patch-Size-Px": f"{rendered.patch_px:.6f}",
+            "X-Render-Patch-Px": f"{rendered.render_patch_px:.6f}",
+            "X-Artefact-Score": f"{rendered.score:.6f}",
+        },
+    )
+
+
+def _add_render_route(router: APIRouter) -> None:
+    """``POST /render`` (always with the API key)."""
 
     @router.post(
         "/render",
@@ -104,23 +168,7 @@ def build_lab_router(*, read_key: bool) -> APIRouter:
         camera; 409 when the job has no result. Headers: ``X-Patch-Size-Px`` (ESIF p),
         ``X-Render-Patch-Px`` (seam-free rendering patch), ``X-Artefact-Score``."""
         station = _station(request)
-        if (body.job_id is None) == (body.result is None):
-            raise ApiError(
-                422,
-                "invalid_request",
-                "give exactly one of job_id (a job's calibration) or result (an lfcal-result/1)",
-                fields=[("job_id", "exactly one of job_id and result")],
-            )
-        if body.job_id is not None:
-            with station_errors():
-                result = station.result(body.job_id)
-        else:
-            assert body.result is not None
-            result = body.result
-        try:
-            camera = CalibratedCamera.from_result(result)
-        except ResultError as exc:
-            raise ApiError(422, "invalid_result", str(exc), fields=[("result", str(exc))]) from None
+        camera = _calibrated_camera(station, body)
         raw_bytes = _b64(body.image_base64, "image_base64")
         white_bytes = None if body.white_base64 is None else _b64(body.white_base64, "white_base64")
         designed = None
@@ -129,39 +177,26 @@ def build_lab_router(*, read_key: bool) -> APIRouter:
                 designed = designed_patch_px(station.config)
             except ValueError as exc:
                 raise ApiError(409, "no_designed_optics", str(exc)) from None
+        return await _rendered_response(camera, body, raw_bytes, white_bytes, designed)
 
-        def work() -> tuple[bytes, Any]:
-            raw = decode_raw(raw_bytes, name="the uploaded image")
-            white = None if white_bytes is None else decode_raw(white_bytes, name="the white image")
-            patch = choose_patch(
-                camera,
-                body.p,
-                object_distance_mm=body.object_distance_mm,
-                designed_px=designed,
-            )
-            rendered = render_frame_with(raw, camera, patch, white=white)
-            return render_png(None, rendered.image), rendered
 
-        try:
-            data, rendered = await run_in_threadpool(work)
-        except RawImageError as exc:
-            raise ApiError(
-                422, "invalid_image", str(exc), fields=[("image_base64", str(exc))]
-            ) from None
-        except FrameMismatch as exc:
-            raise ApiError(422, "frame_mismatch", str(exc)) from None
-        except ValueError as exc:
-            raise ApiError(422, "cannot_render", str(exc), fields=[("p", str(exc))]) from None
-        return Response(
-            content=data,
-            media_type="image/png",
-            headers={
-                "Cache-Control": "no-store",
-                "X-Patch-Size-Px": f"{rendered.patch_px:.6f}",
-                "X-Render-Patch-Px": f"{rendered.render_patch_px:.6f}",
-                "X-Artefact-Score": f"{rendered.score:.6f}",
-            },
-        )
+def _report_html(
+    result: dict[str, Any], archive: pathlib.Path, designed: float | None, job_id: int
+) -> bytes:
+    """The job's report page (UTF-8), from its archive where it has one."""
+    html = report_from_archive(
+        result,
+        archive if (archive / "sweep.json").is_file() else None,
+        designed_px=designed,
+        verify=False,
+        source=f"station job {job_id}",
+        job_id=job_id,
+    )
+    return html.encode("utf-8")
+
+
+def _add_report_route(router: APIRouter, read_deps: list[Any]) -> None:
+    """``GET /jobs/{id}/report.html``."""
 
     @router.get(
         "/jobs/{job_id}/report.html",
@@ -185,24 +220,42 @@ def build_lab_router(*, read_key: bool) -> APIRouter:
         except ValueError:
             designed = None
         cache: BytesCache = request.app.state.media_cache
-
-        def make() -> bytes:
-            html = report_from_archive(
-                result,
-                archive if (archive / "sweep.json").is_file() else None,
-                designed_px=designed,
-                verify=False,
-                source=f"station job {job_id}",
-                job_id=job_id,
-            )
-            return html.encode("utf-8")
-
+        make = functools.partial(_report_html, result, archive, designed, job_id)
         data = await run_in_threadpool(cache.get_or_make, (job_id, "report"), make)
         return Response(
             content=data,
             media_type="text/html; charset=utf-8",
             headers={"Cache-Control": "private, max-age=3600"},
         )
+
+
+def _corners_body(station: Orchestrator, job_id: int, index: int) -> dict[str, Any]:
+    """The corners measured in frame ``index`` of the job (404 for an unknown job or frame)."""
+    with station_errors():
+        station.frame_path(job_id, index)  # 404 for an unknown job or frame
+        step = station.store.step(job_id, index)
+        camera = _frame_size(station, job_id)
+    summary = (step.summary if step is not None else None) or {}
+    rows = summary.get("corners") or {}
+
+    def xy(name: str) -> list[list[float]]:
+        return [[r[2], r[3]] for r in rows.get(name) or [] if len(r) >= 4]
+
+    return {
+        "index": index,
+        "analysed": bool(summary),
+        "rail_mm": None if step is None else step.actual_mm,
+        "width": camera[0],
+        "height": camera[1],
+        "standard": xy("standard"),
+        "reference": xy("reference"),
+        "edge_width_px": summary.get("edge_width_px"),
+        "error": summary.get("error") or None,
+    }
+
+
+def _add_corners_route(router: APIRouter, read_deps: list[Any]) -> None:
+    """``GET /jobs/{id}/frames/{index}/corners``."""
 
     @router.get(
         "/jobs/{job_id}/frames/{index}/corners",
@@ -218,31 +271,16 @@ def build_lab_router(*, read_key: bool) -> APIRouter:
         """Corner positions (px, raw-frame coordinates) in every used micro-image, for the
         standard and the reference corner; ``analysed`` is false until the frame's analysis
         finished. ``width``/``height``: the frame size, to scale an overlay."""
-        station = _station(request)
-        with station_errors():
-            station.frame_path(job_id, index)  # 404 for an unknown job or frame
-            step = station.store.step(job_id, index)
-            camera = _frame_size(station, job_id)
-        summary = (step.summary if step is not None else None) or {}
-        rows = summary.get("corners") or {}
+        return JSONResponse(_corners_body(_station(request), job_id, index))
 
-        def xy(name: str) -> list[list[float]]:
-            return [[r[2], r[3]] for r in rows.get(name) or [] if len(r) >= 4]
 
-        return JSONResponse(
-            {
-                "index": index,
-                "analysed": bool(summary),
-                "rail_mm": None if step is None else step.actual_mm,
-                "width": camera[0],
-                "height": camera[1],
-                "standard": xy("standard"),
-                "reference": xy("reference"),
-                "edge_width_px": summary.get("edge_width_px"),
-                "error": summary.get("error") or None,
-            }
-        )
-
+def build_lab_router(*, read_key: bool) -> APIRouter:
+    """``/render``, ``/jobs/{id}/report.html`` and ``/jobs/{id}/frames/{i}/corners``."""
+    read_deps = [Depends(check_key)] if read_key else []
+    router = APIRouter(prefix=API, tags=["using a calibration"])
+    _add_render_route(router)
+    _add_report_route(router, read_deps)
+    _add_corners_route(router, read_deps)
     return router
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import pathlib
 from enum import StrEnum
 from typing import Annotated, Any
 
@@ -58,11 +60,8 @@ def _png(data: bytes, headers: dict[str, str]) -> Response:
     return Response(content=data, media_type="image/png", headers=headers)
 
 
-def build_media_router(*, read_key: bool) -> APIRouter:
-    """The image and file routes (``read_key``: they require the API key)."""
-    deps = [Depends(check_key)] if read_key else []
-    router = APIRouter(prefix=API, tags=["results"], dependencies=deps)
-    reads = error_responses(401, 403, 404, 409, 422)
+def _add_frame_route(router: APIRouter, reads: dict[int | str, dict[str, Any]]) -> None:
+    """``GET /jobs/{id}/frames/{index}``: the frame's preview."""
 
     @router.get(
         "/jobs/{job_id}/frames/{index}",
@@ -88,26 +87,54 @@ def build_media_router(*, read_key: bool) -> APIRouter:
         except MediaError as exc:
             raise ApiError(409, "frame_unreadable", str(exc)) from None
 
-    def plot_route(name: str, make: Any, summary: str) -> None:
-        def handler(request: Request, job_id: JobId) -> Response:
-            station = _station(request)
-            result = _result(station, job_id)
-            data = _cache(request).get_or_make((job_id, name), lambda: make(result))
-            return _png(data, IMMUTABLE)
 
-        handler.__name__ = f"{name}_plot"
-        handler.__doc__ = summary
-        router.add_api_route(
-            f"/jobs/{{job_id}}/plots/{name}.png",
-            handler,
-            methods=["GET"],
-            response_class=Response,
-            responses={200: PNG, **reads},
-            summary=summary,
+def _add_plot_route(
+    router: APIRouter, reads: dict[int | str, dict[str, Any]], name: str, make: Any, summary: str
+) -> None:
+    """``GET /jobs/{id}/plots/<name>.png``: ``make(result)``, cached per job."""
+
+    def handler(request: Request, job_id: JobId) -> Response:
+        station = _station(request)
+        result = _result(station, job_id)
+        data = _cache(request).get_or_make((job_id, name), lambda: make(result))
+        return _png(data, IMMUTABLE)
+
+    handler.__name__ = f"{name}_plot"
+    handler.__doc__ = summary
+    router.add_api_route(
+        f"/jobs/{{job_id}}/plots/{name}.png",
+        handler,
+        methods=["GET"],
+        response_class=Response,
+        responses={200: PNG, **reads},
+        summary=summary,
+    )
+
+
+def _rendered_frame(
+    station: Orchestrator,
+    job_id: int,
+    result: dict[str, Any],
+    p: PatchChoice,
+    frame: int | None,
+) -> bytes:
+    """Frame ``frame`` (default: the one nearest focus) rendered with patch size ``p`` (PNG)."""
+    try:
+        index = focus_frame_index(result) if frame is None else frame
+        patch = (
+            float(result["patch_size_px"])
+            if p is PatchChoice.calibrated
+            else designed_patch_px(station.config)
         )
+        with station_errors():
+            path = station.frame_path(job_id, index)
+        return rendered_png(read_raw(path), result, patch)
+    except MediaError as exc:
+        raise ApiError(409, "cannot_render", str(exc)) from None
 
-    plot_route("focus", focus_plot, "La(u) with Ls, Lr and the focus plane (PNG)")
-    plot_route("disparity", disparity_plot, "Q(u) per frame with the global model (PNG)")
+
+def _add_render_route(router: APIRouter, reads: dict[int | str, dict[str, Any]]) -> None:
+    """``GET /jobs/{id}/render.png``."""
 
     @router.get(
         "/jobs/{job_id}/render.png",
@@ -130,24 +157,34 @@ def build_media_router(*, read_key: bool) -> APIRouter:
         the seam-free patch ``p − (μ − D/δ)`` for ESIF ``p`` (calibrated or designed)."""
         station = _station(request)
         result = _result(station, job_id)
-
-        def make() -> bytes:
-            try:
-                index = focus_frame_index(result) if frame is None else frame
-                patch = (
-                    float(result["patch_size_px"])
-                    if p is PatchChoice.calibrated
-                    else designed_patch_px(station.config)
-                )
-                with station_errors():
-                    path = station.frame_path(job_id, index)
-                return rendered_png(read_raw(path), result, patch)
-            except MediaError as exc:
-                raise ApiError(409, "cannot_render", str(exc)) from None
-
+        make = functools.partial(_rendered_frame, station, job_id, result, p, frame)
         return _png(
             _cache(request).get_or_make((job_id, "render", p.value, frame), make), IMMUTABLE
         )
+
+
+def _finished_archive(station: Orchestrator, job_id: int) -> pathlib.Path:
+    """The job's archive directory; 409 while the job runs or when it has none."""
+    with station_errors():
+        status = station.status(job_id)
+    if status.state in (JobState.QUEUED, JobState.RUNNING, JobState.PAUSED):
+        raise ApiError(
+            409,
+            "archive_not_ready",
+            f"job {job_id} is {status.state.value}: the archive can be downloaded once the "
+            "job has stopped (succeeded, failed, cancelled or interrupted)",
+            context={"state": status.state.value},
+        )
+    directory = station.archive_dir(job_id)
+    if not directory.is_dir():
+        raise ApiError(
+            409, "archive_missing", f"job {job_id} has no archive directory ({directory.name})"
+        )
+    return directory
+
+
+def _add_archive_route(router: APIRouter, reads: dict[int | str, dict[str, Any]]) -> None:
+    """``GET /jobs/{id}/archive``: the archive as a streamed zip."""
 
     @router.get(
         "/jobs/{job_id}/archive",
@@ -161,22 +198,7 @@ def build_media_router(*, read_key: bool) -> APIRouter:
     def archive(request: Request, job_id: JobId) -> StreamingResponse:
         """``sweep.json``, ``white.png``, ``frames/NNNN.png`` (and ``result.json``); 409 while
         the job is queued, running or paused (the archive is still being written)."""
-        station = _station(request)
-        with station_errors():
-            status = station.status(job_id)
-        if status.state in (JobState.QUEUED, JobState.RUNNING, JobState.PAUSED):
-            raise ApiError(
-                409,
-                "archive_not_ready",
-                f"job {job_id} is {status.state.value}: the archive can be downloaded once the "
-                "job has stopped (succeeded, failed, cancelled or interrupted)",
-                context={"state": status.state.value},
-            )
-        directory = station.archive_dir(job_id)
-        if not directory.is_dir():
-            raise ApiError(
-                409, "archive_missing", f"job {job_id} has no archive directory ({directory.name})"
-            )
+        directory = _finished_archive(_station(request), job_id)
         name = directory.name
         return StreamingResponse(
             zip_stream(directory, name),
@@ -184,6 +206,21 @@ def build_media_router(*, read_key: bool) -> APIRouter:
             headers={"Content-Disposition": f'attachment; filename="{name}.zip"', **NO_STORE},
         )
 
+
+def build_media_router(*, read_key: bool) -> APIRouter:
+    """The image and file routes (``read_key``: they require the API key)."""
+    deps = [Depends(check_key)] if read_key else []
+    router = APIRouter(prefix=API, tags=["results"], dependencies=deps)
+    reads = error_responses(401, 403, 404, 409, 422)
+    _add_frame_route(router, reads)
+    _add_plot_route(
+        router, reads, "focus", focus_plot, "La(u) with Ls, Lr and the focus plane (PNG)"
+    )
+    _add_plot_route(
+        router, reads, "disparity", disparity_plot, "Q(u) per frame with the global model (PNG)"
+    )
+    _add_render_route(router, reads)
+    _add_archive_route(router, reads)
     return router
 
 
