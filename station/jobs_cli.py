@@ -37,7 +37,10 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from station.events import JobEvent
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -153,22 +156,8 @@ def _print_result(out: TextIO, result: dict[str, Any]) -> None:
         out.write(f"  warning: {w}\n")
 
 
-def sweep_main(argv: Sequence[str] | None = None) -> int:
-    """``lfcal sweep``: run (or resume) one job; returns the exit code."""
-    from station.config import load_config_or_report, with_frame_cache
-    from station.events import JobEvent
-    from station.orchestrator import FINAL_STATES, Orchestrator, StationBusy
-    from station.store import InvalidTransition, JobNotFound, JobState, StoreError
-    from station.sweep import RequestInvalid
-
-    args = _sweep_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    out, err = sys.stdout, sys.stderr
-    config = load_config_or_report(args.config, "lfcal sweep", err)
-    if config is None:
-        return EXIT_BAD_INPUT
-    if not args.emulator_speedup > 0:
-        err.write("lfcal sweep: --emulator-speedup must be positive\n")
-        return EXIT_BAD_INPUT
+def _sweep_request(args: argparse.Namespace) -> dict[str, Any]:
+    """The sweep request of ``lfcal sweep``'s options (only those given)."""
     request: dict[str, Any] = {}
     for key, value in (
         ("start_mm", args.start),
@@ -181,7 +170,64 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
             request[key] = value
     if args.no_calibrate:
         request["calibrate"] = False
+    return request
 
+
+class _JobFollower:
+    """Follows one job's events (set :attr:`job_id` once known): progress on the bar
+    (unless ``quiet``), :attr:`finished` set when the job reaches a final state."""
+
+    def __init__(self, bar: ProgressBar, *, quiet: bool) -> None:
+        self.bar = bar
+        self.quiet = quiet
+        self.job_id: int | None = None
+        self.finished = threading.Event()
+
+    def on_event(self, event: JobEvent) -> None:
+        """An event listener (:meth:`station.orchestrator.Orchestrator.add_listener`)."""
+        if self.job_id is None or event.job_id != self.job_id:
+            return
+        if not self.quiet:
+            self._show(event)
+        if event.type == "state":
+            from station.orchestrator import FINAL_STATES
+            from station.store import JobState
+
+            if JobState(event.data["state"]) in FINAL_STATES:
+                self.finished.set()
+
+    def _show(self, event: JobEvent) -> None:
+        bar = self.bar
+        if event.type == "step":
+            d = event.data
+            bar.frame(
+                event.job_id, d["frames_done"], d["frames_total"], d["actual_mm"], d.get("eta_s")
+            )
+        elif event.type == "phase" and event.data["phase"] != "sweeping":
+            detail = f": {event.data['detail']}" if event.data.get("detail") else ""
+            bar.message(f"job {event.job_id}: {event.data['phase']}{detail}")
+        elif event.type == "fault":
+            bar.message(f"job {event.job_id}: recovered from {event.data['error']}")
+        elif event.type == "state":
+            bar.message(f"job {event.job_id}: {event.data['state']} ({event.data['reason']})")
+
+
+def sweep_main(argv: Sequence[str] | None = None) -> int:
+    """``lfcal sweep``: run (or resume) one job; returns the exit code."""
+    from station.config import load_config_or_report, with_frame_cache
+    from station.orchestrator import FINAL_STATES, Orchestrator, StationBusy
+    from station.store import InvalidTransition, JobNotFound, StoreError
+    from station.sweep import RequestInvalid
+
+    args = _sweep_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    out, err = sys.stdout, sys.stderr
+    config = load_config_or_report(args.config, "lfcal sweep", err)
+    if config is None:
+        return EXIT_BAD_INPUT
+    if not args.emulator_speedup > 0:
+        err.write("lfcal sweep: --emulator-speedup must be positive\n")
+        return EXIT_BAD_INPUT
+    request = _sweep_request(args)
     station = Orchestrator(
         with_frame_cache(config, args.sim_frame_cache),
         emulator_speedup=args.emulator_speedup,
@@ -196,42 +242,20 @@ def sweep_main(argv: Sequence[str] | None = None) -> int:
         err.write(f"lfcal sweep: {exc}\n")
         return EXIT_BAD_INPUT
     bar = ProgressBar(err)
-    finished = threading.Event()
+    follow = _JobFollower(bar, quiet=args.quiet)
+    finished = follow.finished
     job_id: int | None = None
-
-    def on_event(event: JobEvent) -> None:
-        if job_id is None or event.job_id != job_id or args.quiet:
-            return
-        if event.type == "step":
-            d = event.data
-            bar.frame(
-                event.job_id, d["frames_done"], d["frames_total"], d["actual_mm"], d.get("eta_s")
-            )
-        elif event.type == "phase" and event.data["phase"] != "sweeping":
-            detail = f": {event.data['detail']}" if event.data.get("detail") else ""
-            bar.message(f"job {event.job_id}: {event.data['phase']}{detail}")
-        elif event.type == "fault":
-            bar.message(f"job {event.job_id}: recovered from {event.data['error']}")
-        elif event.type == "state":
-            bar.message(f"job {event.job_id}: {event.data['state']} ({event.data['reason']})")
-
-    def on_state(event: JobEvent) -> None:
-        if job_id is not None and event.job_id == job_id and event.type == "state":
-            if JobState(event.data["state"]) in FINAL_STATES:
-                finished.set()
-
     interrupted = False
     previous = signal.getsignal(signal.SIGINT)
     try:
-        station.add_listener(on_event)
-        station.add_listener(on_state)
+        station.add_listener(follow.on_event)
         try:
             if args.resume is not None:
-                job_id = args.resume
+                job_id = follow.job_id = args.resume
                 status = station.resume(args.resume, "resumed from the command line")
             else:
                 status = station.submit(request)
-                job_id = status.id
+                job_id = follow.job_id = status.id
         except RequestInvalid as exc:
             err.write("lfcal sweep: the sweep cannot run:\n")
             for field, message in exc.problems:
