@@ -60,6 +60,9 @@ def check_accuracy(result: dict[str, Any], truth: dict[str, Any]) -> None:
     focus_err = focus["object_distance_mm"] - u0
     assert abs(focus_err) <= 0.6, focus_err
     assert abs(focus_err) <= 3 * focus["uncertainty_mm"], (focus_err, focus["uncertainty_mm"])
+    rail_true = truth_value(truth, "focus.rail_mm")  # where the station drives the board
+    if rail_true is not None:
+        assert abs(focus["rail_mm"] - rail_true) <= 0.6, (focus["rail_mm"], rail_true)
     # the paper's route with the exact data-sheet f: the focus plane's accuracy in a and b
     route = result["estimates"]["paper_route"]
     assert abs(route["a_mm"] / a - 1) <= 6e-4, route["a_mm"] / a - 1
