@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .edge_levels import levels_with_drift, levels_with_tail_shape
+from .line_clusters import cluster_on_line
 from .placement_error import PlacementError
 
 ESF_HALF_PX = 10.0
@@ -570,29 +571,7 @@ def _lever_groups(
     weight = weight / float(np.mean(weight))  # sums of weights of order the sample counts
     w = weight[:, 0]
     rel = lever - float(np.sum(w * lever) / np.sum(w))
-    values, inverse = np.unique(rel, return_inverse=True)
-    # clusters of neighbouring distinct values, one per value to start with, joined pairwise
-    # by Ward's criterion
-    owner = np.arange(values.size)  # cluster of each distinct value
-    per_value = np.bincount(inverse, minlength=values.size).astype(np.float64)
-    n = np.bincount(owner, per_value)
-    s1 = np.bincount(owner, per_value * values)
-    s2 = np.bincount(owner, per_value * values * values)
-    while n.size > 1 and (n.size > LEVER_GROUPS or n.min() < MIN_PROFILES):
-        within = s2 - s1 * s1 / n
-        joined = s2[:-1] + s2[1:] - (s1[:-1] + s1[1:]) ** 2 / (n[:-1] + n[1:])
-        costs = joined - within[:-1] - within[1:]
-        small = np.flatnonzero(n < MIN_PROFILES)
-        if n.size <= LEVER_GROUPS and small.size:  # only the small ones must join
-            pairs = [j for j in (small[0] - 1, small[0]) if 0 <= j < n.size - 1]
-            k = min(pairs, key=lambda j: costs[j])
-        else:
-            k = int(np.argmin(costs))
-        for arr in (n, s1, s2):
-            arr[k] += arr[k + 1]
-        n, s1, s2 = (np.delete(arr, k + 1) for arr in (n, s1, s2))
-        owner = np.where(owner > k, owner - 1, owner)
-    label = owner[inverse]
+    label = cluster_on_line(rel, max_groups=LEVER_GROUPS, min_size=MIN_PROFILES)
     groups = []
     for k in np.unique(label):
         sel = label == k

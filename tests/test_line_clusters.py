@@ -1,0 +1,33 @@
+"""Clusters of values on a line (:func:`calibration.line_clusters.cluster_on_line`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.testing import assert_array_equal
+
+from calibration.line_clusters import cluster_on_line
+
+
+def test_separated_groups_are_found_whole_and_labelled_in_order() -> None:
+    rng = np.random.default_rng(1)
+    centres = np.array([-100.0, -20.0, 50.0])
+    truth = rng.integers(0, 3, size=300)
+    values = centres[truth] + rng.normal(0.0, 2.0, size=300)
+    labels = cluster_on_line(values, max_groups=3, min_size=8)
+    assert_array_equal(labels, truth)
+
+
+def test_equal_values_share_a_cluster_and_the_count_is_capped() -> None:
+    values = np.repeat(np.arange(20, dtype=np.float64), 10)
+    labels = cluster_on_line(values, max_groups=6, min_size=8)
+    assert np.unique(labels).size == 6
+    for v in range(20):
+        assert np.unique(labels[values == v]).size == 1
+    assert np.all(np.diff(labels) >= 0)  # clusters of neighbouring values
+
+
+def test_a_small_cluster_joins_its_cheaper_neighbour() -> None:
+    # 3 entries at 10.5 (too few) between a group at 0 and one at 100: they join the near one
+    values = np.concatenate([np.zeros(20), np.full(3, 10.5), np.full(20, 100.0)])
+    labels = cluster_on_line(values, max_groups=6, min_size=8)
+    assert_array_equal(labels, np.repeat([0, 0, 1], [20, 3, 20]))
