@@ -8,8 +8,8 @@ GigE Vision stack.  What this module adds:
 * a GenICam XML generated at run time from the installed library's own fake-camera XML
   (``arv_fake_camera_get_genicam_xml``), patched with the SFNC features the station uses:
   ``ExposureTime`` (µs), ``Gain`` (dB, an IEEE double register), ``DeviceSerialNumber``,
-  a ``Mono12`` ``PixelFormat`` entry, and the sensor size (5120 x 5120 by default, smaller
-  for tests);
+  a ``Mono12`` ``PixelFormat`` entry (:mod:`drivers.sim.fake_gige_xml`), and the sensor
+  size (5120 x 5120 by default, smaller for tests);
 * frames supplied by the caller: a callable ``FrameRequest -> np.ndarray`` or a
   ``queue.Queue`` of arrays; the fill callback copies them byte for byte into the GVSP
   payload, so a test can check that the pixels received are exactly the pixels served;
@@ -17,7 +17,7 @@ GigE Vision stack.  What this module adds:
 
 The callback is installed with ctypes on the C object (the PyGObject binding of
 ``arv_fake_camera_set_fill_pattern`` crashes with Aravis 0.8.26), so this module uses
-ctypes throughout and does not need PyGObject at all.
+ctypes throughout (:mod:`drivers.sim.fake_gige_lib`) and does not need PyGObject at all.
 
 Only one fake camera can listen on an address (the GVCP port 3956 is fixed by the
 protocol), so a fake holds an inter-process file lock for its address from ``start()`` to
@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import atexit
 import ctypes
-import ctypes.util
 import fcntl
 import os
 import queue
@@ -45,43 +44,31 @@ import tempfile
 import threading
 import time
 import weakref
-import xml.etree.ElementTree as ET
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-GENAPI_NS = "http://www.genicam.org/GenApi/Version_1_0"
-XSI_NS = "http://www.w3.org/2001/XMLSchema-instance"
-
-#: PFNC codes (bits 16..23 hold the bits per pixel in the buffer).
-PIXEL_FORMATS: dict[int, str] = {
-    0x01080001: "Mono8",
-    0x01100005: "Mono12",
-    0x01100007: "Mono16",
-}
-MONO12 = 0x01100005
-
-# Registers of ArvFakeCamera (arvfakecamera.h) and of the GigE Vision bootstrap.
-REG_WIDTH = 0x100
-REG_HEIGHT = 0x104
-REG_SENSOR_HEIGHT = 0x118
-REG_SENSOR_WIDTH = 0x11C
-REG_EXPOSURE_US = 0x120
-REG_X_OFFSET = 0x130
-REG_Y_OFFSET = 0x134
-GVBS_MANUFACTURER_NAME = 0x48
-GVBS_MODEL_NAME = 0x68
-#: Device-specific area of the 64 KiB fake register space, unused by Aravis: the Gain value.
-REG_GAIN_DB = 0xB000
-#: ... and the DeviceTemperature value (IEEE double, °C), set by the test.
-REG_TEMPERATURE_C = 0xB008
+from drivers.sim.fake_gige_lib import (
+    GVBS_MANUFACTURER_NAME,
+    GVBS_MODEL_NAME,
+    GVCP_PORT,
+    PIXEL_FORMATS,
+    REG_EXPOSURE_US,
+    REG_GAIN_DB,
+    REG_HEIGHT,
+    REG_SENSOR_HEIGHT,
+    REG_SENSOR_WIDTH,
+    REG_TEMPERATURE_C,
+    REG_WIDTH,
+    FillPatternCallback,
+    aravis_lib,
+)
+from drivers.sim.fake_gige_xml import library_genicam_xml, patch_genicam_xml
 
 DEFAULT_ADDRESS = "127.0.0.1"
-GVCP_PORT = 3956
 
 
 @dataclass(frozen=True)
@@ -126,62 +113,6 @@ def ramp_frame(request: FrameRequest) -> np.ndarray:
     return values.astype(request.dtype)
 
 
-# --------------------------------------------------------------------------- ctypes
-
-
-_FILL = ctypes.CFUNCTYPE(
-    None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
-)
-
-
-class _Lib:
-    """The few libaravis / libgobject entry points used, with their C signatures."""
-
-    def __init__(self) -> None:
-        name = ctypes.util.find_library("aravis-0.8") or "libaravis-0.8.so.0"
-        try:
-            arv = ctypes.CDLL(name)
-            gobject = ctypes.CDLL(ctypes.util.find_library("gobject-2.0") or "libgobject-2.0.so.0")
-        except OSError as exc:  # pragma: no cover - depends on the machine
-            raise RuntimeError(
-                f"Aravis library not found ({exc}); apt-get install gir1.2-aravis-0.8"
-            ) from exc
-        vp, u32, cp = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_char_p
-        sig: dict[str, tuple[object, list[object]]] = {
-            "arv_fake_camera_new": (vp, [cp]),
-            "arv_fake_camera_get_genicam_xml": (vp, [vp, ctypes.POINTER(ctypes.c_size_t)]),
-            "arv_gv_fake_camera_new_full": (vp, [cp, cp, cp]),
-            "arv_gv_fake_camera_is_running": (ctypes.c_int, [vp]),
-            "arv_gv_fake_camera_get_fake_camera": (vp, [vp]),
-            "arv_fake_camera_write_register": (ctypes.c_int, [vp, u32, u32]),
-            "arv_fake_camera_read_register": (ctypes.c_int, [vp, u32, ctypes.POINTER(u32)]),
-            "arv_fake_camera_write_memory": (ctypes.c_int, [vp, u32, u32, vp]),
-            "arv_fake_camera_set_trigger_frequency": (None, [vp, ctypes.c_double]),
-            "arv_fake_camera_set_fill_pattern": (None, [vp, _FILL, vp]),
-            "arv_buffer_get_image_width": (ctypes.c_int, [vp]),
-            "arv_buffer_get_image_height": (ctypes.c_int, [vp]),
-            "arv_buffer_get_image_x": (ctypes.c_int, [vp]),
-            "arv_buffer_get_image_y": (ctypes.c_int, [vp]),
-            "arv_buffer_get_frame_id": (ctypes.c_uint64, [vp]),
-            "arv_buffer_get_data": (vp, [vp, ctypes.POINTER(ctypes.c_size_t)]),
-        }
-        for fname, (restype, argtypes) in sig.items():
-            fn = getattr(arv, fname)
-            fn.restype = restype
-            fn.argtypes = argtypes
-            setattr(self, fname, fn)
-        self.g_object_unref = gobject.g_object_unref
-        self.g_object_unref.argtypes = [vp]
-        self.g_object_unref.restype = None
-        # g_object_set is variadic: only the fixed argument types are declared.
-        self.g_object_set = gobject.g_object_set
-        self.g_object_set.restype = None
-
-    def __getattr__(self, name: str) -> Any:  # for type checkers only
-        raise AttributeError(name)
-
-
-_LIB: _Lib | None = None
 _RUNNING: weakref.WeakSet[FakeGigECamera] = weakref.WeakSet()
 
 
@@ -190,133 +121,6 @@ def _stop_all() -> None:
     """Stop simulators left running, before the interpreter they call back into is gone."""
     for cam in list(_RUNNING):
         cam.stop()
-
-
-def _lib() -> _Lib:
-    global _LIB
-    if _LIB is None:
-        _LIB = _Lib()
-    return _LIB
-
-
-# --------------------------------------------------------------------------- GenICam XML
-
-
-def library_genicam_xml() -> str:
-    """The fake camera XML shipped in the installed libaravis (unpatched)."""
-    lib = _lib()
-    cam = lib.arv_fake_camera_new(b"XMLPROBE")
-    try:
-        size = ctypes.c_size_t()
-        ptr = lib.arv_fake_camera_get_genicam_xml(cam, ctypes.byref(size))
-        return ctypes.string_at(ptr, size.value).decode("utf-8")
-    finally:
-        lib.g_object_unref(cam)
-
-
-def _q(tag: str) -> str:
-    return f"{{{GENAPI_NS}}}{tag}"
-
-
-def _sub(parent: ET.Element, tag: str, text: str | None = None, **attrib: str) -> ET.Element:
-    el = ET.SubElement(parent, _q(tag), attrib)
-    if text is not None:
-        el.text = text
-    return el
-
-
-def patch_genicam_xml(
-    xml: str,
-    *,
-    exposure_limits_us: tuple[float, float] = (10.0, 1_000_000.0),
-    gain_limits_db: tuple[float, float] = (0.0, 24.0),
-) -> str:
-    """Add the SFNC features the station needs to the library's fake-camera XML.
-
-    Adds (when missing) ``DeviceSerialNumber``, ``ExposureTime`` (Float, µs, on the fake's
-    exposure register), ``Gain`` (Float, dB, on an IEEE double register),
-    ``DeviceTemperature`` (Float, °C, read-only, set with
-    :meth:`FakeGigECamera.set_temperature_c`), and a ``Mono12`` ``PixelFormat`` entry.  Existing nodes are left alone.
-    """
-    ET.register_namespace("", GENAPI_NS)
-    ET.register_namespace("xsi", XSI_NS)
-    root = ET.fromstring(xml)
-    by_name = {el.get("Name"): el for el in root if el.get("Name")}
-    port = next((el for el in root if el.tag == _q("Port")), None)
-    insert_at = list(root).index(port) if port is not None else len(root)
-    new: list[ET.Element] = []
-
-    def category_add(category: str, feature: str) -> None:
-        cat = by_name.get(category)
-        if cat is not None and not any(p.text == feature for p in cat):
-            _sub(cat, "pFeature", feature)
-
-    if "DeviceSerialNumber" not in by_name:
-        reg = ET.Element(_q("StringReg"), {"Name": "DeviceSerialNumber", "NameSpace": "Standard"})
-        _sub(reg, "Address", "0xd8")
-        _sub(reg, "Length", "16")
-        _sub(reg, "AccessMode", "RO")
-        _sub(reg, "pPort", "Device")
-        new.append(reg)
-        category_add("DeviceControl", "DeviceSerialNumber")
-
-    if "ExposureTime" not in by_name:
-        exp = ET.Element(_q("Float"), {"Name": "ExposureTime", "NameSpace": "Standard"})
-        _sub(exp, "Description", "Exposure time, in microseconds.")
-        _sub(exp, "pValue", "ExposureTimeAbsConverter")
-        _sub(exp, "Min", repr(float(exposure_limits_us[0])))
-        _sub(exp, "Max", repr(float(exposure_limits_us[1])))
-        _sub(exp, "Unit", "us")
-        new.append(exp)
-        category_add("AcquisitionControl", "ExposureTime")
-
-    if "Gain" not in by_name:
-        gain = ET.Element(_q("Float"), {"Name": "Gain", "NameSpace": "Standard"})
-        _sub(gain, "Description", "Analog gain, in dB.")
-        _sub(gain, "pValue", "GainDbRegister")
-        _sub(gain, "Min", repr(float(gain_limits_db[0])))
-        _sub(gain, "Max", repr(float(gain_limits_db[1])))
-        _sub(gain, "Unit", "dB")
-        reg = ET.Element(_q("FloatReg"), {"Name": "GainDbRegister", "NameSpace": "Custom"})
-        _sub(reg, "Address", hex(REG_GAIN_DB))
-        _sub(reg, "Length", "8")
-        _sub(reg, "AccessMode", "RW")
-        _sub(reg, "pPort", "Device")
-        _sub(reg, "Endianess", "BigEndian")
-        new += [gain, reg]
-        category_add("AnalogControl", "Gain")
-        category_add("Root", "AnalogControl")
-
-    if "DeviceTemperature" not in by_name:
-        temp = ET.Element(_q("Float"), {"Name": "DeviceTemperature", "NameSpace": "Standard"})
-        _sub(temp, "Description", "Temperature of the sensor, in degrees Celsius.")
-        _sub(temp, "pValue", "DeviceTemperatureRegister")
-        _sub(temp, "Min", "-40.0")
-        _sub(temp, "Max", "150.0")
-        _sub(temp, "Unit", "C")
-        reg = ET.Element(
-            _q("FloatReg"), {"Name": "DeviceTemperatureRegister", "NameSpace": "Custom"}
-        )
-        _sub(reg, "Address", hex(REG_TEMPERATURE_C))
-        _sub(reg, "Length", "8")
-        _sub(reg, "AccessMode", "RO")
-        _sub(reg, "pPort", "Device")
-        _sub(reg, "Endianess", "BigEndian")
-        new += [temp, reg]
-        category_add("DeviceControl", "DeviceTemperature")
-
-    pixel_format = by_name.get("PixelFormat")
-    if pixel_format is not None:
-        entries = [e for e in pixel_format if e.tag == _q("EnumEntry")]
-        if not any(e.get("Name") == "Mono12" for e in entries):
-            entry = ET.Element(_q("EnumEntry"), {"Name": "Mono12", "NameSpace": "Standard"})
-            _sub(entry, "Value", str(MONO12))
-            pos = list(pixel_format).index(entries[-1]) + 1 if entries else 0
-            pixel_format.insert(pos, entry)
-
-    for offset, el in enumerate(new):
-        root.insert(insert_at + offset, el)
-    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode")
 
 
 # --------------------------------------------------------------------------- the camera
@@ -338,6 +142,7 @@ class _AddressLock:
         self._fd: int | None = None
 
     def acquire(self, timeout_s: float) -> None:
+        """Take the lock, waiting up to ``timeout_s`` seconds for the fake holding it."""
         if self._fd is not None:
             return
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
@@ -356,6 +161,7 @@ class _AddressLock:
                 threading.Event().wait(0.05)
 
     def release(self) -> None:
+        """Give the lock back (no-op when not held)."""
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
             os.close(self._fd)
@@ -429,7 +235,7 @@ class FakeGigECamera:
         self._xml_path: str | None = None
         self._gv: int | None = None
         self._fake: int | None = None
-        self._callback = _FILL(self._fill)
+        self._callback = FillPatternCallback(self._fill)
         self._zero_cache: dict[int, np.ndarray] = {}
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -449,7 +255,7 @@ class FakeGigECamera:
         if self._gv is not None:
             return
         self._lock.acquire(self.lock_timeout_s)
-        lib = _lib()
+        lib = aravis_lib()
         if self._xml_path is None:
             fd, self._xml_path = tempfile.mkstemp(prefix="lfcal-fake-gige-", suffix=".xml")
             with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -487,7 +293,7 @@ class FakeGigECamera:
         gv, self._gv, self._fake = self._gv, None, None
         _RUNNING.discard(self)
         if gv is not None:
-            _lib().g_object_unref(gv)  # joins the simulator thread; ctypes releases the GIL
+            aravis_lib().g_object_unref(gv)  # joins the simulator thread; ctypes releases the GIL
 
     def close(self) -> None:
         """Stop, release the address and remove the temporary XML file."""
@@ -510,7 +316,7 @@ class FakeGigECamera:
         """Drop this fraction of GVSP packets (0..1) from now on (no resend support)."""
         if self._gv is None:
             raise RuntimeError("the fake camera is stopped")
-        _lib().g_object_set(
+        aravis_lib().g_object_set(
             ctypes.c_void_p(self._gv), b"gvsp-lost-ratio", ctypes.c_double(ratio), None
         )
 
@@ -519,7 +325,7 @@ class FakeGigECamera:
         if self._fake is None:
             raise RuntimeError("the fake camera is stopped")
         value = ctypes.c_uint32()
-        _lib().arv_fake_camera_read_register(self._fake, address, ctypes.byref(value))
+        aravis_lib().arv_fake_camera_read_register(self._fake, address, ctypes.byref(value))
         return value.value
 
     def read_gain_db(self) -> float:
@@ -534,8 +340,10 @@ class FakeGigECamera:
         if self._fake is None:
             raise RuntimeError("the fake camera is stopped")
         word = int.from_bytes(np.array([celsius], dtype=">f8").tobytes(), "big")
-        _lib().arv_fake_camera_write_register(self._fake, REG_TEMPERATURE_C, word >> 32)
-        _lib().arv_fake_camera_write_register(self._fake, REG_TEMPERATURE_C + 4, word & 0xFFFFFFFF)
+        aravis_lib().arv_fake_camera_write_register(self._fake, REG_TEMPERATURE_C, word >> 32)
+        aravis_lib().arv_fake_camera_write_register(
+            self._fake, REG_TEMPERATURE_C + 4, word & 0xFFFFFFFF
+        )
 
     def served_frame(self, frame_id: int) -> np.ndarray | None:
         """The array served with this block id, if still kept."""
@@ -553,7 +361,7 @@ class FakeGigECamera:
 
     def _write_string(self, address: int, text: str, size: int) -> None:
         raw = text.encode()[: size - 1].ljust(size, b"\0")
-        _lib().arv_fake_camera_write_memory(self._fake, address, size, raw)
+        aravis_lib().arv_fake_camera_write_memory(self._fake, address, size, raw)
 
     def _next_array(self, request: FrameRequest) -> np.ndarray:
         if isinstance(self.frames, queue.Queue):
@@ -567,7 +375,7 @@ class FakeGigECamera:
         self, buffer: int, _data: int, exposure_us: int, _gain: int, pixel_format: int
     ) -> None:
         """Fill callback, run on the simulator's thread for every frame it sends."""
-        lib = _lib()
+        lib = aravis_lib()
         try:
             name = PIXEL_FORMATS.get(pixel_format)
             request = FrameRequest(
