@@ -1,11 +1,8 @@
 """Serial transport for Zaber ASCII devices: one chain of devices on one port.
 
-Any pyserial URL works (``serial.serial_for_url``): a device path such as
-``/dev/ttyUSB0`` or ``/dev/serial/by-id/...``, a pseudo-terminal
-``/dev/pts/N``, or ``socket://127.0.0.1:PORT``.  Settings are 115200 8N1,
-no flow control; real ports are opened with an exclusive lock
-(``exclusive=True``, a ``flock`` on POSIX) so a second program cannot talk on
-the same chain.
+The port speaks the ASCII protocol over a :class:`~drivers.zaber.serial_line.SerialLine`
+(any pyserial URL: ``/dev/ttyUSB0``, ``/dev/pts/N``, ``socket://127.0.0.1:PORT``;
+115200 8N1, opened with an exclusive lock).
 
 Every command goes out with a message id (1-99, cycling) and a checksum (devices
 check a command's checksum whatever their ``comm.checksum`` setting).
@@ -31,15 +28,11 @@ The port is thread-safe: one request (write + matching reply) at a time.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any
-
-import serial
 
 from drivers.errors import (
     ChecksumError,
@@ -50,11 +43,7 @@ from drivers.errors import (
 )
 from drivers.zaber import protocol
 from drivers.zaber.protocol import Alert, Reply
-
-BAUDRATE = 115200
-#: Granularity (s) of blocking reads; replies are picked up as soon as they arrive.
-_READ_SLICE_S = 0.01
-_MAX_LINE = 1024
+from drivers.zaber.serial_line import BAUDRATE, SerialLine
 
 
 @dataclass
@@ -95,20 +84,22 @@ class ZaberPort:
             raise ValueError("reply_timeout_s must be positive")
         if retries < 0:
             raise ValueError("retries must be >= 0")
-        self._url = url
-        self._name = name or url
         self.reply_timeout_s = reply_timeout_s
         self.retries = retries
-        self._baudrate = baudrate
-        self._exclusive = exclusive
-        self._serial: Any = None
+        #: a connection lost on the line closes the port first (restoring settings, best effort)
+        self._line = SerialLine(
+            url,
+            name=name or url,
+            baudrate=baudrate,
+            exclusive=exclusive,
+            on_lost=self.close,
+            on_overlong=self._count_overlong_line,
+        )
         self._lock = threading.RLock()
-        self._buffer = bytearray()
         self._next_id = 0
         self._checksummed: set[int] = set()
         #: devices whose comm.checksum this port switched on (switched off at close)
         self._checksum_restore: set[int] = set()
-        self._lost: str | None = None  # why the port was closed under us, if it was
         self.stats = PortStats()
         #: Last alerts received (they are not needed for operation; kept for diagnostics).
         self.alerts: deque[Alert] = deque(maxlen=32)
@@ -118,78 +109,31 @@ class ZaberPort:
     @property
     def url(self) -> str:
         """The pyserial URL or path of the port."""
-        return self._url
+        return self._line.url
 
     @property
     def name(self) -> str:
         """Label used in error messages."""
-        return self._name
+        return self._line.name
 
     @property
     def is_open(self) -> bool:
         """True while the port is open."""
-        return self._serial is not None
+        return self._line.is_open
 
     def open(self) -> ZaberPort:
         """Open the port (115200 8N1, exclusive). Raises PortUnavailable."""
         with self._lock:
-            if self._serial is not None:
-                return self
-            try:
-                ser = serial.serial_for_url(
-                    self._url,
-                    baudrate=self._baudrate,
-                    bytesize=serial.EIGHTBITS,
-                    parity=serial.PARITY_NONE,
-                    stopbits=serial.STOPBITS_ONE,
-                    timeout=_READ_SLICE_S,
-                    write_timeout=2.0,
-                    exclusive=self._exclusive if "://" not in self._url else None,
-                    do_not_open=True,
-                )
-                ser.open()
-            except (serial.SerialException, OSError, ValueError) as exc:
-                raise self._open_error(exc) from exc
-            self._serial = ser
-            self._lost = None
-            self._buffer.clear()
-            self._checksummed.clear()
-            try:
-                ser.reset_input_buffer()  # drop bytes left over from a previous session
-            except (serial.SerialException, OSError):
-                pass
+            if not self._line.is_open:
+                self._line.open()
+                self._checksummed.clear()
             return self
-
-    def _open_error(self, exc: BaseException) -> PortUnavailable:
-        code = getattr(exc, "errno", None)
-        text = str(exc)
-        if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO) or "No such file" in text:
-            hint = (
-                "the port path (ls /dev/serial/by-id); is the USB-serial adapter plugged in "
-                "and the stage powered?"
-            )
-        elif code in (errno.EACCES, errno.EPERM) or "Permission denied" in text:
-            hint = "permissions: add the user to the 'dialout' group, or fix the udev rule"
-        elif code in (errno.EAGAIN, errno.EBUSY) or "exclusive" in text.lower():
-            hint = "another program (or another station instance) has this port open"
-        elif "refused" in text.lower() or code == errno.ECONNREFUSED:
-            hint = "is the server (e.g. 'lfcal emulate-stage --tcp PORT') running on that port?"
-        else:
-            hint = None
-        return PortUnavailable(
-            f"cannot open port {self._url}: {text}", device=self._name, hint=hint
-        )
 
     def close(self) -> None:
         """Restore ``comm.checksum`` where this port changed it; close the port (idempotent)."""
         with self._lock:
             self.restore_settings()
-            ser, self._serial = self._serial, None
-            if ser is not None:
-                try:
-                    ser.close()
-                except (serial.SerialException, OSError):
-                    pass
+            self._line.close()
 
     def __enter__(self) -> ZaberPort:
         return self.open()
@@ -231,7 +175,7 @@ class ZaberPort:
         """
         if not 1 <= device <= protocol.MAX_DEVICE:
             raise ValueError(f"device number {device} outside 1-{protocol.MAX_DEVICE}")
-        label = label or f"{self._name} device {device} axis {axis}"
+        label = label or f"{self.name} device {device} axis {axis}"
         if retry is None:
             retry = protocol.is_idempotent(text)
         if require_checksum is None:
@@ -263,7 +207,7 @@ class ZaberPort:
         checksum are rejected.  A device that rejects the setting keeps answering
         without checksums (False; replies are still parsed strictly).
         """
-        label = label or f"{self._name} device {device}"
+        label = label or f"{self.name} device {device}"
         if device in self._checksummed:
             return True
         current = self.request(device, 0, "get comm.checksum", label=label, require_checksum=False)
@@ -286,7 +230,7 @@ class ZaberPort:
         (best effort: a device that does not answer keeps it)."""
         with self._lock:
             devices, self._checksum_restore = sorted(self._checksum_restore), set()
-            if self._serial is None:
+            if not self._line.is_open:
                 return
             for device in devices:
                 try:
@@ -306,11 +250,11 @@ class ZaberPort:
         """Send ``text`` to every device (device 0) and collect replies for ``listen_s`` seconds."""
         with self._lock:
             message_id = self._take_id()
-            self._write(protocol.format_command(0, 0, text, message_id=message_id), self._name)
+            self._line.write(protocol.format_command(0, 0, text, message_id=message_id), self.name)
             deadline = time.monotonic() + listen_s
             replies: list[Reply] = []
             while True:
-                line = self._read_line(deadline, self._name)
+                line = self._line.read_line(deadline, self.name)
                 if line is None:
                     return sorted(replies, key=lambda r: r.device)
                 try:
@@ -353,11 +297,11 @@ class ZaberPort:
     ) -> Reply:
         message_id = self._take_id()
         self.stats.requests += 1
-        self._write(protocol.format_command(device, axis, text, message_id=message_id), label)
+        self._line.write(protocol.format_command(device, axis, text, message_id=message_id), label)
         deadline = time.monotonic() + timeout_s
         bad: GarbledReply | None = None
         while True:
-            line = self._read_line(deadline, label)
+            line = self._line.read_line(deadline, label)
             if line is None:
                 if bad is not None:
                     raise type(bad)(
@@ -388,53 +332,8 @@ class ZaberPort:
         else:
             self.stats.other += 1
 
-    def _port(self, label: str) -> Any:
-        if self._serial is None and self._lost is not None:
-            raise ConnectionLost(
-                f"port {self._url} was closed when the connection was lost ({self._lost})",
-                device=label,
-            )
-        if self._serial is None:
-            raise PortUnavailable(
-                f"port {self._url} is not open", device=label, hint="call open() first"
-            )
-        return self._serial
-
-    def _connection_lost(self, exc: BaseException, label: str) -> ConnectionLost:
-        self.close()
-        self._lost = str(exc)
-        return ConnectionLost(f"connection on {self._url} lost: {exc}", device=label)
-
-    def _write(self, data: bytes, label: str) -> None:
-        ser = self._port(label)
-        try:
-            ser.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise self._connection_lost(exc, label) from exc
-
-    def _read_line(self, deadline: float, label: str) -> bytes | None:
-        """Next complete line (without terminator), or None at the deadline."""
-        ser = self._port(label)
-        buffer = self._buffer
-        while True:
-            newline = buffer.find(b"\n")
-            if newline >= 0:
-                line = bytes(buffer[:newline]).rstrip(b"\r")
-                del buffer[: newline + 1]
-                if line.strip():
-                    return line
-                continue
-            if len(buffer) > _MAX_LINE:
-                self.stats.garbled += 1
-                buffer.clear()
-            if time.monotonic() >= deadline:
-                return None
-            try:
-                waiting = ser.in_waiting
-                chunk = ser.read(waiting if waiting > 0 else 1)
-            except (serial.SerialException, OSError) as exc:
-                raise self._connection_lost(exc, label) from exc
-            buffer += chunk
+    def _count_overlong_line(self) -> None:
+        self.stats.garbled += 1
 
 
 __all__ = ["BAUDRATE", "ChecksumError", "PortStats", "ZaberPort"]
