@@ -28,22 +28,19 @@ from station.job_records import (
     status_of,
 )
 from station.run_control import StepTiming
-from station.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StepRecord, Transition
+from station.store import ACTIVE_STATES, JobRecord, JobState, StepRecord, Transition
 
 
 class JobReads:
     """Queries and event streams over the ledger, the worker and the store (a base of
-    :class:`station.orchestrator.Orchestrator`, which sets the attributes below)."""
+    :class:`station.orchestrator.Orchestrator`, which sets the attributes below; the store
+    is the ledger's, so reading before the station started raises ``RuntimeError``)."""
 
     config: StationConfig
     hub: EventHub
     _ledger: JobLedger
     _worker: HardwareWorker
     _archives: ArchiveReader
-
-    @property
-    def store(self) -> JobStore:
-        raise NotImplementedError
 
     # ------------------------------------------------------------------ queries
 
@@ -58,7 +55,7 @@ class JobReads:
         job = self._ledger.record(job_id, cached=True)
         active = self._worker.active_for(job_id)  # no lock (see above)
         if active is None or job.state not in ACTIVE_STATES:
-            steps = self._ledger.rows.step_count(job, lambda: self.store.step_count(job_id))
+            steps = self._ledger.rows.step_count(job, lambda: self._ledger.store.step_count(job_id))
             return status_of(job, steps)
         with self._worker.progress_lock:
             p = active.progress
@@ -76,7 +73,7 @@ class JobReads:
 
     def jobs(self, states: Iterable[JobState] | None = None) -> list[JobStatus]:
         """Every job (oldest first), optionally only those in ``states``."""
-        records = self.store.list_jobs(states=set(states) if states else None)
+        records = self._ledger.store.list_jobs(states=set(states) if states else None)
         return [self.status(job.id) for job in records]
 
     def record(self, job_id: int) -> JobRecord:
@@ -85,30 +82,30 @@ class JobReads:
 
     def transitions(self, job_id: int) -> list[Transition]:
         """Every state change of the job with its time and reason."""
-        self.store.get_job(job_id)
-        return self.store.transitions(job_id)
+        self._ledger.store.get_job(job_id)
+        return self._ledger.store.transitions(job_id)
 
     def steps(self, job_id: int) -> list[StepRecord]:
         """The job's recorded steps in index order."""
-        self.store.get_job(job_id)
-        return self.store.steps(job_id)
+        self._ledger.store.get_job(job_id)
+        return self._ledger.store.steps(job_id)
 
     def result(self, job_id: int) -> dict[str, Any]:
         """The calibration result (JSON object) of a succeeded job (:func:`station.job_records.result_of`:
         :class:`ResultNotReady` while it runs or when it ended without one)."""
-        return result_of(self._ledger.record(job_id, with_result=True), self.store)
+        return result_of(self._ledger.record(job_id, with_result=True), self._ledger.store)
 
     def archive_dir(self, job_id: int) -> Path:
         """The job's ``lfcal-sweep/1`` directory, local or fetched from object storage."""
-        return archive_dir_of(self.store, self._archives, job_id)
+        return archive_dir_of(self._ledger.store, self._archives, job_id)
 
     def frame_path(self, job_id: int, index: int) -> Path:
         """The file of a recorded frame (:class:`FrameNotFound` otherwise)."""
-        return frame_path_of(self.store, self._archives, job_id, index)
+        return frame_path_of(self._ledger.store, self._archives, job_id, index)
 
     def read_frame(self, job_id: int, index: int) -> Any:
         """A recorded frame as counts (:func:`station.job_records.read_frame_of`)."""
-        return read_frame_of(self.store, self._archives, job_id, index)
+        return read_frame_of(self._ledger.store, self._archives, job_id, index)
 
     def step_timings(self, job_id: int) -> list[StepTiming]:
         """Hardware-thread timings of the steps this process ran for the job."""
@@ -131,7 +128,7 @@ class JobReads:
         """The job's recorded steps after ``after`` and its current state as events
         (:func:`station.job_records.replay_events`; the SSE recipe is there)."""
         return replay_events(
-            self.store,
+            self._ledger.store,
             self._ledger.record(job_id),
             after,
             reference_gap_mm=self.config.board.reference_gap_mm,

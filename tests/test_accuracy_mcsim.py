@@ -23,6 +23,12 @@ def sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return render_mcsim(tmp_path_factory.mktemp("mcsim") / "small", frames=50, step_mm=2, seed=7)
 
 
+def _short_sweep(out: Path, seed: int, *extra: str) -> Path:
+    """mcsim's 50 px camera, 31 frames 2 mm apart from rail 20 mm (focus inside), with
+    ``extra`` options."""
+    return render_mcsim(out, frames=31, step_mm=2, seed=seed, extra=(*extra, "--start-mm", "20"))
+
+
 def test_the_ray_traced_sweep_is_calibrated_within_twice_the_targets(sweep: Path) -> None:
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
@@ -33,13 +39,7 @@ def test_the_ray_traced_sweep_is_calibrated_within_twice_the_targets(sweep: Path
 def test_round_microlenses_are_calibrated_and_not_flagged(tmp_path: Path) -> None:
     """Round lenses filling their cells (most real MLAs): the defocus kernel's RMS width is
     √12/4 of a box of the pitch, the fit must find it, and no aperture warning may fire."""
-    sweep = render_mcsim(
-        tmp_path / "round",
-        frames=31,
-        step_mm=2,
-        seed=11,
-        extra=("--aperture", "circle", "--start-mm", "20"),
-    )
+    sweep = _short_sweep(tmp_path / "round", 11, "--aperture", "circle")
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
     kappa = result["focus"]["defocus_model"]["aperture_scale"]
@@ -55,12 +55,8 @@ def test_a_low_noise_sweep_with_random_point_samples_is_calibrated(tmp_path: Pat
     the renderer drew. The edge's slope was then not measured (its blocks' median contrast
     was 0), the profiles kept the lattice's slope, several frames carried 0.3–1 px of
     placement jitter, and this sweep gave focus -4.1 ± 1.1 mm, a -1.07 ± 0.28 %."""
-    sweep = render_mcsim(
-        tmp_path / "quiet",
-        frames=31,
-        step_mm=2,
-        seed=13,
-        extra=("--jitter", "--photons", "1e7", "--read-noise", "0", "--start-mm", "20"),
+    sweep = _short_sweep(
+        tmp_path / "quiet", 13, "--jitter", "--photons", "1e7", "--read-noise", "0"
     )
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
@@ -72,13 +68,7 @@ def test_a_board_with_a_wide_reference_gap_is_calibrated(tmp_path: Path) -> None
     once took for "two different edges" (3 px at most), so the reference corner was found
     only past focus and F came out -0.14 % at 3.8 sigma (rail zero -0.33 mm). The halves
     are now compared with the gap as the frame images it."""
-    sweep = render_mcsim(
-        tmp_path / "gap",
-        frames=31,
-        step_mm=2,
-        seed=10,
-        extra=("--gap-mm", "0.2", "--start-mm", "20"),
-    )
+    sweep = _short_sweep(tmp_path / "gap", 10, "--gap-mm", "0.2")
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
     # found on both sides of the focus plane, not only past it where the gap images narrower
@@ -90,13 +80,7 @@ def test_clipped_edges_are_left_out_of_the_blur_and_reported(tmp_path: Path) -> 
     """Board frames 5 % brighter than full light: the brightest squares reach full scale
     (4095) in most micro-images. Their half-edges are left out of the blur (a clipped edge
     reads sharper), the rest calibrate the camera, and the result says so."""
-    sweep = render_mcsim(
-        tmp_path / "bright",
-        frames=31,
-        step_mm=2,
-        seed=5,
-        extra=("--exposure", "1.05", "--start-mm", "20"),
-    )
+    sweep = _short_sweep(tmp_path / "bright", 5, "--exposure", "1.05")
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
     clipped = [
@@ -112,13 +96,7 @@ def test_clipped_edges_are_left_out_of_the_blur_and_reported(tmp_path: Path) -> 
 def test_a_clipped_white_image_is_reported(tmp_path: Path) -> None:
     """A white image 10 % brighter than full light: half its lit pixels clip, the discs'
     centres move (the pitch reads 6.7e-5 low, b -0.19 %): the result must say so."""
-    sweep = render_mcsim(
-        tmp_path / "white",
-        frames=31,
-        step_mm=2,
-        seed=5,
-        extra=("--white-exposure", "1.1", "--start-mm", "20"),
-    )
+    sweep = _short_sweep(tmp_path / "white", 5, "--white-exposure", "1.1")
     result, _ = calibrate(sweep)
     assert 0.3 < result["mla"]["white_clipped_fraction"] < 0.8
     notes = [w for w in result["warnings"] if "white image is clipped" in w]
@@ -132,13 +110,7 @@ def test_a_sweep_clipped_everywhere_has_no_focus_plane(tmp_path: Path) -> None:
     This sweep once gave focus +3.5 mm, a +0.84 % (at 3x: -5.1 +- 1.7 mm); now the focus
     plane is not determined, the reason is the clip, and the frames' disparities are kept
     in the partial result."""
-    sweep = render_mcsim(
-        tmp_path / "overexposed",
-        frames=31,
-        step_mm=2,
-        seed=5,
-        extra=("--exposure", "1.5", "--start-mm", "20"),
-    )
+    sweep = _short_sweep(tmp_path / "overexposed", 5, "--exposure", "1.5")
     with pytest.raises(FocusNotDeterminedError) as caught:
         calibrate(sweep)
     message = str(caught.value)
