@@ -12,13 +12,19 @@ every uncertainty must cover its error (3σ).
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from calibration.archive_images import read_image
 from calibration.pipeline import calibrate_archive
+from calibration.png import encode_png_gray16
 from station.summary_table import truth_value
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,6 +48,53 @@ def render_mcsim(
     cmd = [sys.executable, "-m", "bench.mcsim", str(out), "--preset", "small", *extra]
     cmd += ["--frames", str(frames), "--step-mm", str(step_mm), "--seed", str(seed), "--jobs", "1"]
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL, timeout=900)
+    return out
+
+
+def with_sensor_defects(
+    sweep: Path,
+    out: Path,
+    *,
+    seed: int,
+    prnu: float = 0.01,
+    dsnu_counts: float = 2.0,
+    hot_fraction: float = 2e-4,
+    dead_fraction: float = 5e-5,
+    flicker: float = 0.02,
+) -> Path:
+    """A copy of ``sweep`` as a real sensor would have recorded it: a fixed gain per pixel
+    (PRNU, 1σ fraction), a fixed offset per pixel (DSNU, 1σ counts), hot pixels (a fixed
+    extra 200 counts to full scale) and dead ones (0), the same in the white image and
+    every frame, and each frame's exposure off by ``flicker`` (1σ fraction); counts
+    rounded and held to the manifest's bit depth, checksums rewritten."""
+    shutil.copytree(sweep, out)
+    manifest = json.loads((out / "sweep.json").read_text())
+    bit_depth = int(manifest["camera"].get("bit_depth", 12))
+    full_scale = (1 << bit_depth) - 1
+    rng = np.random.default_rng(seed)
+    shape = read_image(out / manifest["white"], expected_shape=None, bit_depth=bit_depth).shape
+    gain = 1.0 + prnu * rng.standard_normal(shape)
+    offset = dsnu_counts * rng.standard_normal(shape)
+    hot = np.where(rng.random(shape) < hot_fraction, rng.uniform(200, full_scale, shape), 0.0)
+    dead = rng.random(shape) < dead_fraction
+
+    def record(name: str, exposure: float) -> str:
+        recorded = read_image(out / name, expected_shape=shape, bit_depth=bit_depth)
+        counts = recorded.astype(np.float64)
+        counts = counts * gain * exposure + offset + hot
+        counts = np.clip(np.rint(np.where(dead, 0.0, counts)), 0, full_scale)
+        data = encode_png_gray16(counts.astype(np.uint16))
+        (out / name).write_bytes(data)
+        return hashlib.sha256(data).hexdigest()
+
+    white_sha = record(manifest["white"], 1.0)
+    if "white_sha256" in manifest:
+        manifest["white_sha256"] = white_sha
+    for frame in manifest["frames"]:
+        sha = record(frame["file"], 1.0 + flicker * rng.standard_normal())
+        if "sha256" in frame:
+            frame["sha256"] = sha
+    (out / "sweep.json").write_text(json.dumps(manifest, indent=2))
     return out
 
 
