@@ -328,7 +328,9 @@ def _fit_sweep(
         if with_reference:
             # the main images again on this camera's Q(u), not each corner's own: the
             # first placement's camera had a rougher Q0, under which the data sheet had a say
-            inv_m, inv_m_se = magnification_on_camera(fitted[0], frames, rails, grid, g)
+            inv_m, inv_m_se = magnification_on_camera(
+                fitted[0], frames, rails, grid, g, shading_eta=fitted[1].eta
+            )
             fitted = _camera_or_raise(focus, arr, inv_m, inv_m_se, grid, g, partial)
         return fitted
 

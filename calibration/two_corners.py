@@ -5,8 +5,8 @@ them, their agreement, and the systematic spreads of the camera fitted either wa
   board (:func:`inverse_magnification`), or with the main images placed again with the
   camera's ``Q(u)`` (:func:`magnification_on_camera`, :mod:`calibration.main_image`);
 - the coherent systematics no per-frame error describes: half the difference between
-  cameras fitted with the main images placed with and without the disparity's shading
-  bias (:func:`main_image_systematic`), and with each corner's disparity alone
+  cameras fitted with the main images placed with the shading's pull one standard error
+  above and below its value (:func:`main_image_systematic`), and with each corner's disparity alone
   (:func:`corner_systematic`), added in quadrature by :func:`add_half_spread`;
 - the standard and the reference corner must measure the same ``Q`` in a frame
   (:func:`corner_agreement`: a difference means MLA tilt or field curvature).
@@ -84,24 +84,26 @@ def magnification_on_camera(
     grid: MlaGrid,
     g: SweepGeometry,
     *,
-    shading_bias: float = 0.5,
+    shading_eta: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``1/M`` per frame from main images placed with the camera's ``Q(u)``.
+    """``1/M`` per frame from main images placed with the camera's ``Q(u)`` and the shading's pull.
 
-    The micro-image positions follow the disparity's ``Q``, which the camera reads as
-    ``Q·(1 + η·(Q - Q0))`` when the bias is the angular shading's pull about the lens
-    centres, or the camera's own ``Q`` when it is not (an independent renderer's sweep
-    needs the latter, our simulator's the former). ``shading_bias`` is the fraction of
-    the bias applied (0.5: the midpoint; :func:`main_image_systematic` takes the two
-    ends); the camera's ``Q`` uncertainty goes through the lever arms
-    (:mod:`calibration.main_image`).
+    The angular shading inside each micro-image (the main aperture's image, brighter
+    on the side toward the axis; :mod:`calibration.shading`) pulls every corner's
+    micro-image positions toward their lens centres by a fraction that grows with
+    defocus, so the positions follow ``Q·(1 + η_s·(Q - Q0))`` about the lens centres:
+    ``shading_eta`` is that ``η_s``, predicted from the white image (the measurement's
+    ``eta``), not the disparity's fitted bias ``η``, which also carries how the corner
+    fits respond to the blur, a bias of the disparity's reading that moves no
+    position. The camera's ``Q`` uncertainty goes through the lever arms
+    (:mod:`calibration.main_image`); ``η_s``'s goes into :func:`main_image_systematic`.
     """
     q, q_se = cam.q_at_rail(rails)
-    bias = q * cam.values["eta"] * (q - cam.values["Q0"])
+    pull = q * shading_eta * (q - cam.values["Q0"])
     return lever_arm_inverse_magnification(
         [fs.corners for fs in frames],
         grid.lens_grid,
-        q=q + shading_bias * bias,
+        q=q + pull,
         q_se=q_se,
         square_mm=g.board.square_mm,
         pixel_pitch_mm=g.pixel_pitch_mm,
@@ -130,18 +132,24 @@ def main_image_systematic(
     grid: MlaGrid,
     g: SweepGeometry,
 ) -> dict[str, float]:
-    """Half the difference between the cameras whose main images were placed with and
-    without the disparity's shading bias (:func:`magnification_on_camera`): which of
-    the two the micro-image positions follow depends on how the image was formed, and
-    it moves every frame's ``1/M`` coherently (F and the rail zero), which no per-frame
-    error describes. Added in quadrature to every quantity; empty without magnification.
+    """Half the difference between the cameras whose main images were placed with the
+    shading's pull ``η_s`` one standard error above and below its value
+    (:func:`magnification_on_camera`; ``measurements.eta`` and ``eta_se``, which carries the
+    shading model's own uncertainty): it moves every frame's ``1/M`` coherently (F and the
+    rail zero), which no per-frame error describes. Added in quadrature to every quantity;
+    empty without magnification.
     """
     if not np.isfinite(measurements.inv_magnification).any():
         return {}
     fits = []
-    for fraction in (0.0, 1.0):
+    for sign in (-1.0, 1.0):
         inv_m, inv_m_se = magnification_on_camera(
-            cam, frames, measurements.rail_mm, grid, g, shading_bias=fraction
+            cam,
+            frames,
+            measurements.rail_mm,
+            grid,
+            g,
+            shading_eta=measurements.eta + sign * measurements.eta_se,
         )
         try:
             fits.append(

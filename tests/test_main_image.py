@@ -9,11 +9,18 @@ move them by the lever arm, as the uncertainty says.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+from typing import cast
+
 import numpy as np
 from numpy.testing import assert_allclose
 
+from calibration.camera_model import CameraModelFit
 from calibration.lens_grid import LensGrid
 from calibration.main_image import lever_arm_inverse_magnification
+from calibration.mla_grid import MlaGrid
+from calibration.summary import FrameSummary, SweepGeometry
+from calibration.two_corners import magnification_on_camera
 
 GRID = LensGrid(origin_px=(1898.8, 268.7), pitch_px=50.0, rotation_rad=np.radians(0.35))
 SQUARE_MM, PIXEL_MM = 10.0, 0.0025
@@ -104,3 +111,46 @@ def test_a_missing_corner_gives_nan() -> None:
         pixel_pitch_mm=PIXEL_MM,
     )
     assert np.all(np.isnan(inv)) and np.all(np.isnan(se))
+
+
+class _Camera:
+    """The two things :func:`magnification_on_camera` asks of a calibrated camera."""
+
+    def __init__(self, q: np.ndarray, q0: float) -> None:
+        self.q, self.values = q, {"Q0": q0}
+
+    def q_at_rail(self, rail_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.q, np.zeros_like(self.q)
+
+
+def test_main_images_follow_the_shading_pull_about_the_lens_centres() -> None:
+    """Positions pulled toward their lens centres by the shading, ``s = m + (m - r)·Q·(1 +
+    η_s·(Q - Q0))``: placed with that ``η_s`` the main images, and ``1/M``, come back
+    exactly; placed without it, frames away from focus read ``1/M`` off by the lever arm
+    (a tilt along the sweep, which is F's error)."""
+    q0, eta_s = 0.30, 2e-3
+    q = np.array([0.33, 0.31, 0.30, 0.29, 0.27])
+    true_inv = np.array([7.1, 7.6, 8.0, 8.4, 9.2])
+    frames = [
+        SimpleNamespace(corners=_frame(float(qk * (1 + eta_s * (qk - q0))), float(ik)))
+        for qk, ik in zip(q, true_inv, strict=True)
+    ]
+    grid = SimpleNamespace(lens_grid=GRID)
+    geometry = SimpleNamespace(board=SimpleNamespace(square_mm=SQUARE_MM), pixel_pitch_mm=PIXEL_MM)
+
+    def placed(eta: float) -> np.ndarray:
+        inv, _ = magnification_on_camera(
+            cast(CameraModelFit, _Camera(q, q0)),
+            cast(list[FrameSummary], frames),
+            np.arange(q.size, dtype=float),
+            cast(MlaGrid, grid),
+            cast(SweepGeometry, geometry),
+            shading_eta=eta,
+        )
+        return inv
+
+    assert_allclose(placed(eta_s), true_inv, rtol=1e-12)
+    off = placed(0.0) / true_inv - 1.0
+    assert abs(off[2]) < 1e-12  # at focus there is no pull
+    assert np.all(np.abs(off[[0, 1, 3, 4]]) > 1e-6)
+    assert np.sign(off[0]) == -np.sign(off[4])  # opposite sides of focus: a tilt
