@@ -88,10 +88,11 @@ def magnification_on_camera(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``1/M`` per frame from main images placed with the camera's ``Q(u)`` and the shading's pull.
 
-    The angular shading inside each micro-image (the main aperture's image, brighter
-    on the side toward the axis; :mod:`calibration.shading`) pulls every corner's
-    micro-image positions toward their lens centres by a fraction that grows with
-    defocus, so the positions follow ``Q·(1 + η_s·(Q - Q0))`` about the lens centres:
+    The angular shading inside each micro-image (a ray's weight falls with its angle at
+    the sensor: cos⁴, the pixels' acceptance; :mod:`calibration.shading`) pulls every
+    corner's micro-image positions toward their lens centres by a fraction that grows
+    with defocus, the main image staying put, so the positions follow
+    ``Q·(1 + η_s·(Q - Q0))`` about the lens centres:
     ``shading_eta`` is that ``η_s``, predicted from the white image (the measurement's
     ``eta``), not the disparity's fitted bias ``η``, which also carries how the corner
     fits respond to the blur, a bias of the disparity's reading that moves no
