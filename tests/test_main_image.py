@@ -154,3 +154,37 @@ def test_main_images_follow_the_shading_pull_about_the_lens_centres() -> None:
     assert abs(off[2]) < 1e-12  # at focus there is no pull
     assert np.all(np.abs(off[[0, 1, 3, 4]]) > 1e-6)
     assert np.sign(off[0]) == -np.sign(off[4])  # opposite sides of focus: a tilt
+
+
+def test_positions_locked_to_the_pixel_grid_widen_the_uncertainty_to_their_scatter() -> None:
+    """Each micro-image's corner rounded to the nearest half pixel (how an unresolved edge
+    lands between point samples) while its fit claims 0.004 px: the main images' σ grows
+    with the offsets' scatter, and ``1/M``'s errors stay within it."""
+    rng = np.random.default_rng(11)
+    q = np.full(300, 0.30)
+    true_inv = np.full(300, 8.0)
+    frames = []
+    for _ in range(300):
+        frame = _frame(0.30, 8.0)
+        shift = rng.uniform(-0.5, 0.5, 2)  # the whole image against the pixel grid
+        for rows in frame.values():
+            for row in rows:
+                row[2] = np.round((row[2] + shift[0]) * 2.0) / 2.0 - shift[0]
+                row[3] = np.round((row[3] + shift[1]) * 2.0) / 2.0 - shift[1]
+        frames.append(frame)
+    inv, se = lever_arm_inverse_magnification(
+        frames, GRID, q=q, q_se=np.zeros(300), square_mm=SQUARE_MM, pixel_pitch_mm=PIXEL_MM
+    )
+    exact, se_exact = lever_arm_inverse_magnification(
+        [_frame(0.30, 8.0)],
+        GRID,
+        q=q[:1],
+        q_se=np.zeros(1),
+        square_mm=SQUARE_MM,
+        pixel_pitch_mm=PIXEL_MM,
+    )
+    assert_allclose(exact, true_inv[:1], rtol=1e-12)
+    z = (inv - true_inv) / se
+    assert np.median(se) > 10 * se_exact[0]  # the scatter, not the fits' 0.004 px
+    assert np.sqrt(np.mean(z**2)) < 1.5
+    assert np.mean(np.abs(z) <= 3) > 0.97
