@@ -53,40 +53,34 @@ def _main_image(
     micro-image (``-Q·r``): its weighted mean gives ``r = -c/Q``.
     """
     mx, my = lens_grid.centre(rows[:, 0], rows[:, 1])
+    centres = np.column_stack([mx, my])
+    positions = rows[:, 2:4]
     se = np.maximum(np.maximum(rows[:, 4], rows[:, 5]), CORNER_SE_FLOOR_PX)
     w = 1.0 / se**2
     total = float(np.sum(w))
-    m_bar = np.array([np.sum(w * mx), np.sum(w * my)]) / total
-    s_bar = np.array([np.sum(w * rows[:, 2]), np.sum(w * rows[:, 3])]) / total
+    m_bar = w @ centres / total
+    s_bar = w @ positions / total
     lever = m_bar - s_bar
     r = m_bar + lever / q
-    return r, lever, float(np.sqrt(1.0 / total) / q) * _scatter_ratio(rows, mx, my, w, q)
+    # each micro-image's offset c about their mean c̄ = s̄ - (1+Q)·m̄
+    offsets = (positions - s_bar) - (1.0 + q) * (centres - m_bar)
+    return r, lever, float(np.sqrt(1.0 / total) / q) * _birge_ratio(offsets, w)
 
 
-def _scatter_ratio(
-    rows: NDArray[np.float64],
-    mx: NDArray[np.float64],
-    my: NDArray[np.float64],
-    w: NDArray[np.float64],
-    q: float,
-) -> float:
-    """How much more the micro-images' offsets ``c = s - (1+Q)·m`` scatter about their
-    weighted mean than their errors say (Birge ratio, at least 1; 1 with one micro-image).
+def _birge_ratio(offsets_px: NDArray[np.float64], w: NDArray[np.float64]) -> float:
+    """How much more the micro-images' offsets ``c - c̄`` (px, one row each) scatter than
+    their errors (weights ``w = 1/σ²``) say: the Birge ratio, at least 1; 1 with one
+    micro-image.
 
     Where the pixels do not resolve the corners' edges (point-sampled or very sharp
     micro-images) the positions lock to the pixel grid, tenths of a pixel off where each
     fit claims thousandths; the offsets then disagree by as much, and the main image is
     as uncertain as their scatter.
     """
-    n = rows.shape[0]
+    n = offsets_px.shape[0]
     if n < 2:
         return 1.0
-    cx = rows[:, 2] - (1.0 + q) * mx
-    cy = rows[:, 3] - (1.0 + q) * my
-    total = float(np.sum(w))
-    dx = cx - float(np.sum(w * cx)) / total
-    dy = cy - float(np.sum(w * cy)) / total
-    chi2 = float(np.sum(w * (dx**2 + dy**2))) / (2.0 * (n - 1))
+    chi2 = float(np.sum(w * np.sum(offsets_px**2, axis=1))) / (2.0 * (n - 1))
     return float(np.sqrt(max(chi2, 1.0)))
 
 
