@@ -20,8 +20,10 @@ other seeds, the image moved against the pixel grid by a fraction of a pixel eac
 bias), the spread and the RMS error (held against the target) tell a bias from one
 seed's luck. Per renderer, over ``--seeds`` coverage sweeps: the fraction of
 seeds whose error is within 1 and within 3 reported sigma (exact and wrong data
-sheets), the RMS of error/sigma, the mean and the worst error. Then the load
-average of the machine during the run.
+sheets), the RMS of error/sigma, the mean and the worst error. The same over
+``--seeds`` random mcsim cameras (``--configs random``; in the default full run, not in
+``--quick``): each its own optics and sweep, :func:`bench.focus.configs.random_camera_config`.
+Then the load average of the machine during the run.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from bench.focus.configs import (
     SweepConfig,
     coverage_config,
     quick_config,
+    random_camera_config,
     repeat_config,
 )
 from bench.focus.evaluate import (
@@ -63,6 +66,8 @@ from calibration.pipeline import CalibrationError, calibrate_archive
 
 DEFAULT_SEEDS = 20
 QUICK_SEEDS = 3
+RANDOM_CAMERAS = "mcsim random cameras"
+"""The coverage group of :func:`~bench.focus.configs.random_camera_config`'s sweeps."""
 
 
 _SAY_LOCK = threading.Lock()
@@ -225,6 +230,9 @@ def select(
         accuracy += [c for c in chosen if names is None or c.name in names]
         if seeds > 0 and (names is None or "coverage" in names):
             coverage[r] = [coverage_config(r, k) for k in range(seeds)]
+    wanted = names is not None and "random" in names or names is None and not quick
+    if seeds > 0 and "mcsim" in renderers and wanted:
+        coverage[RANDOM_CAMERAS] = [random_camera_config(k) for k in range(seeds)]
     return accuracy, coverage
 
 

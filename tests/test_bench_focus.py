@@ -24,17 +24,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.bench_focus import Run
+from bench.bench_focus import RANDOM_CAMERAS, Run, select
 from bench.crosscheck import indsim
 from bench.focus import cache
 from bench.focus.configs import (
     ACCURACY,
     ALL_OFF,
     EXACT,
+    RANDOM_MIN_BLUR_PX,
     PriorOffset,
     SweepConfig,
     placement_shift_px,
     principal_point_px,
+    random_camera_config,
     repeat_config,
 )
 from bench.focus.evaluate import (
@@ -45,6 +47,7 @@ from bench.focus.evaluate import (
     repeat_rows,
 )
 from bench.focus.summary import accuracy_lines, repeat_lines
+from bench.mcsim.__main__ import parser as mcsim_parser
 from bench.mcsim.archive import truth as mcsim_truth
 from bench.mcsim.spec import build_spec
 from calibration.archive import SweepArchive
@@ -346,3 +349,37 @@ def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cach
         for path in (render.path, cache.sweep_dir(root, repeat))
     ]
     assert np.subtract(pp[1], pp[0]) == pytest.approx(placement_shift_px(1))
+
+
+def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
+    """Each random camera is an mcsim command line the renderer accepts, drawn the same way
+    every time, all different, at the issue's sampling (30 rays, 2x2 fixed points), both
+    corners, and its sweep defocuses by at least RANDOM_MIN_BLUR_PX at one end and passes
+    through the focus plane (by mcsim's own truth, not by the formula that drew it)."""
+    configs = [random_camera_config(k) for k in range(8)]
+    assert [c.args for c in configs] == [random_camera_config(k).args for k in range(8)]
+    assert len({c.args for c in configs}) == 8 and len({c.seed for c in configs}) == 8
+    for config in configs:
+        assert config.renderer == "mcsim" and config.coverage and config.priors[0] == EXACT
+        options = vars(mcsim_parser().parse_args(["-", *config.args]))
+        for name in ("out_dir", "force", "jobs"):
+            options.pop(name)
+        truth = mcsim_truth(build_spec(**options))
+        render = truth["render"]
+        assert (render["rays_per_subpixel"], render["subpixels_per_axis"]) == (30, 2)
+        assert render["subpixel_jitter"] is False and render["corners"] == ["standard", "reference"]
+        blur = [f["defocus_blur_px"] for f in truth["frames"]]
+        assert max(blur) >= RANDOM_MIN_BLUR_PX - 1e-6
+        q = np.array([f["Q"] for f in truth["frames"]])
+        assert q.min() < truth["Q_focus"] < q.max()
+
+
+def test_random_cameras_join_the_full_run_not_the_quick_one() -> None:
+    """The full benchmark and ``--configs random`` include the random cameras as their own
+    coverage group; ``--quick`` and a run without mcsim do not."""
+    _, full = select(("sim", "mcsim"), None, 3, False)
+    assert [c.name for c in full[RANDOM_CAMERAS]] == ["random-c00", "random-c01", "random-c02"]
+    _, named = select(("mcsim",), ("random",), 2, False)
+    assert set(named) == {RANDOM_CAMERAS}
+    assert RANDOM_CAMERAS not in select(("sim", "mcsim"), None, 3, True)[1]
+    assert RANDOM_CAMERAS not in select(("sim",), None, 3, False)[1]

@@ -30,12 +30,21 @@ plane (the start moves by the golden-ratio fraction of a step): each is
 calibrated with the exact data sheet and with one wrong one (the four
 combinations in turn). A wrong data sheet is only a different manifest (the
 frames are the same), so its archive shares the base render's images.
+
+The random cameras (:func:`random_camera_config`, mcsim only) stand in for the
+hidden renderers' cameras: each draws its own optics and sweep (lens pitch,
+``Q0``, ``b``, ``F``, focus distance, step, direction, rotation, MLA and board
+offsets) within the envelope README states, at the issue's settings (30 rays per
+point sample, 2×2 point samples at the same place in every pixel), and is
+calibrated like a coverage sweep.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
 
 RENDERERS = ("sim", "indsim", "mcsim")
 
@@ -259,6 +268,83 @@ def coverage_config(renderer: str, k: int) -> SweepConfig:
         COVERAGE_SEED_BASE + k,
         f"coverage sweep {k}: {COVERAGE_FRAMES} frames {COVERAGE_STEP_MM:g} mm apart from rail "
         f"{start:g} mm",
+        priors=(EXACT, OFF[k % len(OFF)]),
+        coverage=True,
+    )
+
+
+RANDOM_CAMERA_SEED_BASE = 7000
+RANDOM_SWEEP_MM = 60.0
+RANDOM_MIN_BLUR_PX = 1.2
+"""The random cameras' sweeps defocus at least this much (geometric blur diameter, px) at
+their far end: the focus plane of a sweep that barely defocuses is refused, by design."""
+
+PIXEL_MM = 0.0025
+
+
+def _random_camera(rng: np.random.Generator) -> tuple[dict[str, float], float]:
+    """One draw of a camera and sweep, and the geometric blur (px) at its farther end."""
+    pitch_px = rng.uniform(60.0, 110.0)
+    q0 = rng.uniform(0.15, 0.30)
+    b = rng.uniform(1.6, 3.4)
+    F = rng.uniform(25.0, 75.0)
+    u0 = F * rng.uniform(6.0, 10.0)
+    step = float(rng.choice([1.0, 1.5, 2.0]))
+    focus_rail = rng.uniform(0.25, 0.75) * RANDOM_SWEEP_MM
+    direction = int(rng.choice([1, -1]))
+    camera = {
+        "pitch_px": pitch_px,
+        "Q0": q0,
+        "b": b,
+        "F": F,
+        "u0": u0,
+        "step": step,
+        "focus_rail": focus_rail,
+        "direction": direction,
+        "theta": rng.uniform(-0.5, 0.5),
+        "mla_x": rng.uniform(-4.0, 4.0),
+        "mla_y": rng.uniform(-4.0, 4.0),
+        "board_x": rng.uniform(-0.45, 0.45),
+        "board_y": rng.uniform(-0.45, 0.45),
+    }
+    # OPTICS.md §1: Q(u) = b / (L - v(u)), L = v(u0) + b/Q0, blur = (D/δ)·|Q(u) - Q0|
+    L = u0 * F / (u0 - F) + b / q0
+    ends = u0 - direction * focus_rail + direction * np.array([0.0, RANDOM_SWEEP_MM])
+    q = b / (L - ends * F / (ends - F))
+    return camera, float(pitch_px * np.max(np.abs(q - q0)))
+
+
+def random_camera_config(k: int) -> SweepConfig:
+    """The ``k``-th random camera (mcsim), redrawn until its sweep defocuses by at least
+    :data:`RANDOM_MIN_BLUR_PX`; calibrated with the exact and one wrong data sheet."""
+    rng = np.random.default_rng(RANDOM_CAMERA_SEED_BASE + k)
+    while True:
+        c, blur_px = _random_camera(rng)
+        if blur_px >= RANDOM_MIN_BLUR_PX:
+            break
+    f = c["b"] / (1.0 + c["Q0"])
+    frames = int(round(RANDOM_SWEEP_MM / c["step"])) + 1
+    u_rail0 = c["u0"] - c["direction"] * c["focus_rail"]
+    args = (
+        f"--F {c['F']:.4f} --f {f:.5f} --D {c['pitch_px'] * PIXEL_MM:.6f} --b {c['b']:.5f} "
+        f"--u0 {c['u0']:.3f} --theta-deg={c['theta']:.3f} "
+        f"--mla-offset={c['mla_x']:.2f},{c['mla_y']:.2f} "
+        f"--board-offset={c['board_x']:.3f},{c['board_y']:.3f} --u-rail0 {u_rail0:.3f} "
+        f"--direction {c['direction']} --start-mm 0 --step-mm {c['step']:g} --frames {frames} "
+        "--fit-frame --rays 30 --subpixel 2 --corners both"
+    )
+    about = (
+        f"random camera {k}: {c['pitch_px']:.1f} px lenses, Q0 {c['Q0']:.3f}, b {c['b']:.2f} mm, "
+        f"F {c['F']:.1f} mm, focus at u {c['u0']:.0f} mm (rail {c['focus_rail']:.1f}), "
+        f"{frames} frames {c['step']:g} mm apart, direction {c['direction']:+d}, "
+        f"MLA at {c['theta']:+.2f} deg, blur up to {blur_px:.1f} px"
+    )
+    return SweepConfig(
+        "mcsim",
+        f"random-c{k:02d}",
+        _args(args),
+        RANDOM_CAMERA_SEED_BASE + k,
+        about,
         priors=(EXACT, OFF[k % len(OFF)]),
         coverage=True,
     )
