@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from .archive import ImageError, SweepArchive
 from .blas_threads import single_blas_thread
 from .camera_model import ModelError, check_priors
-from .clipping import clipped_fraction
+from .clipping import OverexposedWhiteError, check_white_exposure
 from .combine import combine
 from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
@@ -97,6 +97,13 @@ class FrameAnalyzer:
     def from_white(
         cls, geometry: SweepGeometry, white: NDArray[Any], options: CalibrationOptions | None = None
     ) -> FrameAnalyzer:
+        """The analyzer of a sweep from its white image: the MLA grid, the shading and the
+        options they set. :class:`~calibration.clipping.OverexposedWhiteError` (before any
+        fit) when the white image is clipped over too much of its lit area, ``ValueError``
+        when it shows no microlens grid."""
+        clipped = 0.0
+        if geometry.max_count is not None:
+            clipped = check_white_exposure(white, geometry.max_count)
         grid = fit_mla_grid(
             white,
             lens_pitch_px=geometry.lens_pitch_px,
@@ -121,7 +128,6 @@ class FrameAnalyzer:
             # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
             corner = dataclasses.replace(options.corner, flat_field=flat_field)
             options = dataclasses.replace(options, corner=corner)
-        clipped = 0.0 if geometry.max_count is None else clipped_fraction(white, geometry.max_count)
         grid = dataclasses.replace(grid, shading=shading, white_clipped_fraction=clipped)
         return cls(geometry, grid, options)
 
@@ -249,6 +255,8 @@ def _analyzer(
         raise CalibrationError(f"white image unusable: {exc}") from exc
     try:
         return FrameAnalyzer.from_white(geometry, white, options)
+    except OverexposedWhiteError as exc:
+        raise CalibrationError(str(exc)) from exc
     except ValueError as exc:
         raise CalibrationError(f"no microlens grid in the white image: {exc}") from exc
 

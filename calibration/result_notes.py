@@ -180,7 +180,8 @@ def clipped_edges_note(frames: Sequence[FrameSummary], max_count: int | None) ->
 WHITE_CLIPPED_WARNING = 1e-3
 """A white image with more than this fraction of its lit pixels clipped is reported:
 its micro-images' centres and shading (so the pitch, and b, and the edges' flat field)
-are then measured on clipped discs."""
+are then measured on clipped discs (beyond :data:`~calibration.clipping.WHITE_CLIPPED_LIMIT`
+it is refused)."""
 
 
 def white_clipped_note(grid: MlaGrid, max_count: int | None) -> str:
@@ -192,8 +193,8 @@ def white_clipped_note(grid: MlaGrid, max_count: int | None) -> str:
     return (
         f"the white image is clipped: {100 * fraction:.1f} % of its lit pixels at full "
         f"scale{scale}; the micro-images' centres and shading, and so the pitch, b and the "
-        "edges' flat field, are measured on clipped discs (b -0.19 % seen with 57 % "
-        "clipped): record the white image with a lower exposure"
+        "edges' flat field, are measured on clipped discs (nothing measurable at 20 %, b "
+        "-0.21 % at 57 %, which is refused): record the white image with a lower exposure"
     )
 
 

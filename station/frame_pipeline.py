@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from calibration.archive import ArchiveError, SweepArchive, SweepWriter
+from calibration.clipping import OverexposedWhiteError
 from calibration.pipeline import SweepGeometry
 from station.analysis import summary_from_dict
 from station.events import JobEvent, analysis_payload, step_data
@@ -128,6 +129,8 @@ class FramePipeline:
             guard.announce_phase("white", "fitting the MLA grid")
             try:
                 analyzer = self.ctx.pool.fit_analyzer(self.geometry, white)
+            except OverexposedWhiteError as exc:
+                raise JobFailed(f"the white image is unusable: {exc}") from exc
             except ValueError as exc:
                 raise JobFailed(
                     f"the white image is unusable, the MLA grid fit failed: {exc} -- check that "

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.clipping import clipped_at, clipped_fraction
+from calibration.clipping import (
+    WHITE_CLIPPED_LIMIT,
+    OverexposedWhiteError,
+    check_white_exposure,
+    clipped_at,
+    clipped_fraction,
+)
 
 
 def test_a_clipped_patch_counts_a_lone_full_scale_pixel_does_not() -> None:
@@ -33,3 +39,19 @@ def test_the_clipped_fraction_counts_lit_pixels_in_clipped_patches() -> None:
     stuck = np.full((100, 200), 3000.0)
     stuck[::10, ::10] = 4095
     assert clipped_fraction(stuck, 4095) == 0.0
+
+
+def test_a_white_clipped_beyond_the_limit_is_refused_with_the_numbers() -> None:
+    """A white image whose lit area is clipped beyond WHITE_CLIPPED_LIMIT is refused with the
+    fraction, the full scale and what to do; at the limit it is accepted and its fraction
+    returned."""
+    assert WHITE_CLIPPED_LIMIT == pytest.approx(0.05)
+    white = np.full((100, 200), 3000.0)
+    white[:5, :] = 4095  # 5 % of the lit pixels: accepted
+    assert check_white_exposure(white, 4095) == pytest.approx(0.05)
+    white[5:8, :] = 4095  # 8 %: refused
+    with pytest.raises(OverexposedWhiteError) as caught:
+        check_white_exposure(white, 4095)
+    message = str(caught.value)
+    assert "8.0 % of its lit pixels" in message and "(4095 counts)" in message
+    assert "lower exposure" in message

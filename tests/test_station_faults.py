@@ -27,6 +27,7 @@ from test_station_helpers import (
 )
 
 import calibration.archive_writer as archive_module
+import station.faults as faults_module
 from station.events import JobEvent
 from station.orchestrator import Orchestrator
 from station.store import JobState
@@ -169,6 +170,26 @@ def test_blank_and_saturated_frames_fail_with_the_numbers(station: Orchestrator)
         saturated.last_error or ""
     )
     assert station.steps(blank.id) == [] and station.steps(saturated.id) == []
+
+
+def test_an_overexposed_white_fails_the_calibrating_job_before_the_sweep(
+    tmp_path: Path, pytestconfig: pytest.Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A white image whose lit area is clipped: the grab's own check (more than 1 % of the
+    pixels at full scale) is relaxed here, so the calibration's refuses it when the MLA
+    grid is fitted (in the analysis worker): the job fails before the rail moves, saying
+    what and what to do."""
+    monkeypatch.setattr(faults_module, "SATURATED_FRACTION", 1.0)
+    station = make_station(tmp_path, frame_cache(pytestconfig), timeout_s=1.0, analysis_workers=1)
+    try:
+        failed = run(station, dict(SWEEP, exposure_us=5e6, calibrate=True))
+        assert failed.state is JobState.FAILED
+        error = failed.last_error or ""
+        assert "the white image is unusable: the white image is overexposed" in error, error
+        assert "of its lit pixels are at full scale" in error and "lower exposure" in error
+        assert station.steps(failed.id) == []
+    finally:
+        station.close()
 
 
 def test_low_disk_space_is_detected_before_a_write(
