@@ -354,7 +354,7 @@ def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cach
 def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
     """Each random camera is an mcsim command line the renderer accepts, drawn the same way
     every time, all different, at the issue's sampling (30 rays, 2x2 fixed points), both
-    corners, and its sweep defocuses by at least RANDOM_MIN_BLUR_PX at one end and passes
+    corners, its own sensor noise and exposure, and its sweep defocuses by at least RANDOM_MIN_BLUR_PX at one end and passes
     through the focus plane (by mcsim's own truth, not by the formula that drew it)."""
     configs = [random_camera_config(k) for k in range(8)]
     assert [c.args for c in configs] == [random_camera_config(k).args for k in range(8)]
@@ -362,6 +362,10 @@ def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
     for config in configs:
         assert config.renderer == "mcsim" and config.coverage and config.priors[0] == EXACT
         options = vars(mcsim_parser().parse_args(["-", *config.args]))
+        # its own sensor, exposed below full scale
+        assert 3000 <= options["photons"] <= 40000 and 2 <= options["read_noise_e"] <= 8
+        assert options["bit_depth"] in (12, 16) and options["black_level"] in (0, 64)
+        assert 0.6 <= options["exposure"] < 1 and 0.7 <= options["white_exposure"] < 1
         for name in ("out_dir", "force", "jobs"):
             options.pop(name)
         truth = mcsim_truth(build_spec(**options))

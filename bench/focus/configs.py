@@ -34,9 +34,10 @@ frames are the same), so its archive shares the base render's images.
 The random cameras (:func:`random_camera_config`, mcsim only) stand in for the
 hidden renderers' cameras: each draws its own optics and sweep (lens pitch,
 ``Q0``, ``b``, ``F``, focus distance, step, direction, rotation, MLA and board
-offsets) within the envelope README states, at the issue's settings (30 rays per
-point sample, 2×2 point samples at the same place in every pixel), and is
-calibrated like a coverage sweep.
+offsets) within the envelope README states, and its own sensor (electrons at
+full light, read noise, black level, bit depth) and exposures below full scale, at
+the issue's settings (30 rays per point sample, 2×2 point samples at the same place
+in every pixel), and is calibrated like a coverage sweep.
 """
 
 from __future__ import annotations
@@ -314,6 +315,20 @@ def _random_camera(rng: np.random.Generator) -> tuple[dict[str, float], float]:
     return camera, float(pitch_px * np.max(np.abs(q - q0)))
 
 
+def _random_sensor(rng: np.random.Generator) -> dict[str, float | int]:
+    """The sensor and exposure of a random camera: electrons at full light (log-uniform),
+    read noise, black level, bit depth, and the board's and the white image's light as
+    fractions of full scale (an operator exposes below it)."""
+    return {
+        "photons": float(np.exp(rng.uniform(np.log(3000.0), np.log(40000.0)))),
+        "read_noise": rng.uniform(2.0, 8.0),
+        "black_level": int(rng.choice([0, 0, 64])),
+        "bit_depth": int(rng.choice([12, 12, 16])),
+        "exposure": rng.uniform(0.6, 0.95),
+        "white_exposure": rng.uniform(0.7, 0.95),
+    }
+
+
 def random_camera_config(k: int) -> SweepConfig:
     """The ``k``-th random camera (mcsim), redrawn until its sweep defocuses by at least
     :data:`RANDOM_MIN_BLUR_PX`; calibrated with the exact and one wrong data sheet."""
@@ -322,6 +337,7 @@ def random_camera_config(k: int) -> SweepConfig:
         c, blur_px = _random_camera(rng)
         if blur_px >= RANDOM_MIN_BLUR_PX:
             break
+    sensor = _random_sensor(rng)
     f = c["b"] / (1.0 + c["Q0"])
     frames = int(round(RANDOM_SWEEP_MM / c["step"])) + 1
     u_rail0 = c["u0"] - c["direction"] * c["focus_rail"]
@@ -331,13 +347,18 @@ def random_camera_config(k: int) -> SweepConfig:
         f"--mla-offset={c['mla_x']:.2f},{c['mla_y']:.2f} "
         f"--board-offset={c['board_x']:.3f},{c['board_y']:.3f} --u-rail0 {u_rail0:.3f} "
         f"--direction {c['direction']} --start-mm 0 --step-mm {c['step']:g} --frames {frames} "
-        "--fit-frame --rays 30 --subpixel 2 --corners both"
+        "--fit-frame --rays 30 --subpixel 2 --corners both "
+        f"--photons {sensor['photons']:.0f} --read-noise {sensor['read_noise']:.2f} "
+        f"--black-level {sensor['black_level']} --bit-depth {sensor['bit_depth']} "
+        f"--exposure {sensor['exposure']:.3f} --white-exposure {sensor['white_exposure']:.3f}"
     )
     about = (
         f"random camera {k}: {c['pitch_px']:.1f} px lenses, Q0 {c['Q0']:.3f}, b {c['b']:.2f} mm, "
         f"F {c['F']:.1f} mm, focus at u {c['u0']:.0f} mm (rail {c['focus_rail']:.1f}), "
         f"{frames} frames {c['step']:g} mm apart, direction {c['direction']:+d}, "
-        f"MLA at {c['theta']:+.2f} deg, blur up to {blur_px:.1f} px"
+        f"MLA at {c['theta']:+.2f} deg, blur up to {blur_px:.1f} px; "
+        f"{sensor['photons']:.0f} e- at full light, board at {sensor['exposure']:.2f} of it, "
+        f"{sensor['bit_depth']} bit, black level {sensor['black_level']}"
     )
     return SweepConfig(
         "mcsim",
