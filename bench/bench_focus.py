@@ -230,7 +230,7 @@ def select(
         accuracy += [c for c in chosen if names is None or c.name in names]
         if seeds > 0 and (names is None or "coverage" in names):
             coverage[r] = [coverage_config(r, k) for k in range(seeds)]
-    wanted = names is not None and "random" in names or names is None and not quick
+    wanted = "random" in names if names is not None else not quick
     if seeds > 0 and "mcsim" in renderers and wanted:
         coverage[RANDOM_CAMERAS] = [random_camera_config(k) for k in range(seeds)]
     return accuracy, coverage

@@ -354,8 +354,9 @@ def test_repeats_are_calibrated_with_the_exact_data_sheet(tiny: tuple[Path, cach
 def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
     """Each random camera is an mcsim command line the renderer accepts, drawn the same way
     every time, all different, at the issue's sampling (30 rays, 2x2 fixed points), both
-    corners, its own sensor noise and exposure, and its sweep defocuses by at least RANDOM_MIN_BLUR_PX at one end and passes
-    through the focus plane (by mcsim's own truth, not by the formula that drew it)."""
+    corners, its own sensor noise and exposure; its sweep defocuses by at least
+    RANDOM_MIN_BLUR_PX at one end and passes through the focus plane (by mcsim's own
+    truth, not by the formula that drew it)."""
     configs = [random_camera_config(k) for k in range(8)]
     assert [c.args for c in configs] == [random_camera_config(k).args for k in range(8)]
     assert len({c.args for c in configs}) == 8 and len({c.seed for c in configs}) == 8

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration.optics import image_distance
+
 RENDERERS = ("sim", "indsim", "mcsim")
 
 
@@ -309,9 +311,9 @@ def _random_camera(rng: np.random.Generator) -> tuple[dict[str, float], float]:
         "board_y": rng.uniform(-0.45, 0.45),
     }
     # OPTICS.md §1: Q(u) = b / (L - v(u)), L = v(u0) + b/Q0, blur = (D/δ)·|Q(u) - Q0|
-    L = u0 * F / (u0 - F) + b / q0
+    L = image_distance(u0, F) + b / q0
     ends = u0 - direction * focus_rail + direction * np.array([0.0, RANDOM_SWEEP_MM])
-    q = b / (L - ends * F / (ends - F))
+    q = b / (L - image_distance(ends, F))
     return camera, float(pitch_px * np.max(np.abs(q - q0)))
 
 
