@@ -59,6 +59,15 @@ Physics and conventions, and why
   longitudinal aberration of a rim ray for an object at infinity (S > 0: the
   under-corrected aberration of a simple positive lens); for a finite object
   the focus shift is S·(v/F)²·(ρ/(A/2))² to first order.
+* Mechanical vignetting (``--vignetting-stop-mm Z --vignetting-diameter-mm
+  A_v``): a second circular stop, centred on the axis at z = Z (0 < Z < L:
+  between the main lens and the MLA; Z < 0: in front of the main lens, the
+  board beyond it), blocks every ray whose lateral position on its plane lies
+  outside A_v/2 (the straight ray from the MLA point to x0 behind the lens, the
+  refracted ray with its object-side slope in front of it). Far off axis it
+  cuts micro-images into "cat's eyes": a rear stop on their side towards the
+  axis, a front stop on the side away from it (its image through the main lens
+  lies in front of the lens). Default: no second stop (renders unchanged).
 * Sensor: the full-light signal (a reflectance-1 board on the axis) gives
   ``--photons`` electrons and maps to full scale; Poisson shot noise, Gaussian
   read noise (e−), black level, rounding and clipping to the bit depth

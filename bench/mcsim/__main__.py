@@ -75,6 +75,23 @@ def parser() -> argparse.ArgumentParser:
         help="main aperture diameter (default L*D/b)",
     )
     g.add_argument("--aperture", choices=("square", "circle"), help="microlens aperture")
+    g.add_argument(
+        "--vignetting-stop-mm",
+        dest="vignetting_stop_mm",
+        type=float,
+        metavar="Z",
+        help="mechanical vignetting: a second circular stop centred on the axis at z = Z mm "
+        "(main lens at 0, MLA at L): 0 < Z < L between the main lens and the MLA, Z < 0 "
+        "in front of the main lens (the board must stay beyond it); rays outside it are "
+        "blocked. Needs --vignetting-diameter-mm (default: no second stop)",
+    )
+    g.add_argument(
+        "--vignetting-diameter-mm",
+        dest="vignetting_diameter_mm",
+        type=float,
+        metavar="A_V",
+        help="diameter of the --vignetting-stop-mm stop, mm",
+    )
     g = p.add_argument_group("board and rail")
     g.add_argument("--square-mm", dest="square_mm", type=float)
     g.add_argument("--gap-mm", dest="gap_mm", type=float, help="reference gap Cr")

@@ -3,7 +3,8 @@
 ``sweep.json`` is what a station would write: the manifest's optics and rail
 zero are the *data-sheet* values (:class:`bench.mcsim.spec.Manifest`), which
 may differ from the rendered camera. ``truth.json`` records the rendered
-camera; ``render_log.json`` the cost of every image.
+camera; ``render_log.json`` the cost of every image (and the vignetting stop,
+so a log says which optics it timed).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from bench.mcsim.camera import Camera
 from bench.mcsim.render import RenderStats
 from bench.mcsim.spec import SweepSpec
 
@@ -115,6 +117,7 @@ def truth(spec: SweepSpec) -> dict[str, Any]:
         "height": cam.height,
         "principal_point_px": list(cam.principal_point_px),
         "main_aperture_diameter_mm": cam.main_aperture_mm,
+        **vignetting_stop(cam),
         "lens_grid": {
             "origin_px": list(cam.lens_origin_px),
             "pitch_px": cam.lens_pitch_px,
@@ -171,11 +174,21 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
-def render_log(stats: list[RenderStats]) -> dict[str, Any]:
+def vignetting_stop(cam: Camera) -> dict[str, float | None]:
+    """The second (vignetting) stop's position z and diameter, mm; None when absent."""
+    return {
+        "vignetting_stop_mm": cam.vignetting_stop_mm,
+        "vignetting_diameter_mm": cam.vignetting_diameter_mm,
+    }
+
+
+def render_log(stats: list[RenderStats], camera: Camera | None = None) -> dict[str, Any]:
+    """Cost of every image; with ``camera``, also the vignetting stop it was rendered with."""
     frames = [s for s in stats if s.u_mm is not None]
     rays = sum(s.rays for s in frames)
     cpu = sum(s.cpu_seconds for s in frames)
     return {
+        **(vignetting_stop(camera) if camera is not None else {}),
         "frames_rays": rays,
         "frames_cpu_seconds": cpu,
         "frames_wall_seconds": sum(s.seconds for s in frames),

@@ -37,7 +37,10 @@ class Camera:
     ``sensor_distance_mm`` is b, ``lens_origin_px`` is O (the projected centre of
     lens (0, 0)), ``main_aperture_mm`` the main-lens aperture diameter A.
     ``microlens_aperture`` is ``"square"`` (side D, fill factor 1) or
-    ``"circle"`` (diameter D).
+    ``"circle"`` (diameter D). ``vignetting_stop_mm`` (Z) and
+    ``vignetting_diameter_mm`` (A_v) place an optional second circular stop,
+    centred on the axis at z = Z (0 < Z < L: between the main lens and the MLA;
+    Z < 0: in front of the main lens): mechanical vignetting; both None: none.
     """
 
     width: int
@@ -53,6 +56,8 @@ class Camera:
     lens_origin_px: tuple[float, float]
     main_aperture_mm: float
     microlens_aperture: str = "square"
+    vignetting_stop_mm: float | None = None
+    vignetting_diameter_mm: float | None = None
 
     # ---- thin-lens relations (OPTICS.md §1) -------------------------------------
     def v_mm(self, u_mm: float) -> float:
@@ -184,4 +189,40 @@ class Camera:
             if a <= 0:
                 raise OpticsError(
                     f"a = {a:g} mm <= 0 at u = {u:g} mm: main image behind the MLA (not Keplerian)"
+                )
+        self._check_vignetting_stop(u_values_mm)
+
+    def _check_vignetting_stop(self, u_values_mm: list[float]) -> None:
+        """The second stop: both numbers or neither, a real diameter, a place on the light path."""
+        z, d = self.vignetting_stop_mm, self.vignetting_diameter_mm
+        if z is None and d is None:
+            return
+        if z is None or d is None:
+            raise OpticsError(
+                "the vignetting stop needs both its position and its diameter "
+                "(--vignetting-stop-mm and --vignetting-diameter-mm), or neither"
+            )
+        if not math.isfinite(z):
+            raise OpticsError(f"vignetting stop position must be a finite number (got {z:g})")
+        if not (math.isfinite(d) and d > 0):
+            raise OpticsError(f"vignetting stop diameter must be > 0 mm (got {d:g})")
+        L, b = self.mla_distance_mm, self.sensor_distance_mm
+        where = f"vignetting stop at z = {z:g} mm"
+        if z == 0:
+            raise OpticsError(f"{where} is the main lens itself (use the main aperture instead)")
+        if z >= L:
+            if z == L:
+                place = "at the MLA"
+            elif z < L + b:
+                place = "between the MLA and the sensor"
+            else:
+                place = "behind the sensor"
+            raise OpticsError(
+                f"{where} lies {place} (L = {L:g} mm): put it between the main lens "
+                f"and the MLA (0 < Z < L) or in front of the main lens (Z < 0)"
+            )
+        for u in u_values_mm:
+            if z < 0 and u <= -z:
+                raise OpticsError(
+                    f"board at u = {u:g} mm is not beyond the {where} (needs u > {-z:g} mm)"
                 )

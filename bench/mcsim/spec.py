@@ -8,6 +8,8 @@ Option names (the CLI's ``--flag`` in brackets):
   (the focus-plane object distance; L = v(u0) + a_f), ``theta_deg``,
   ``mla_offset`` (px of lens (0, 0)'s projected centre from the principal point),
   ``main_aperture_mm`` (default L·D/b), ``aperture`` (microlens: square|circle),
+  ``vignetting_stop_mm`` [--vignetting-stop-mm] and ``vignetting_diameter_mm``
+  [--vignetting-diameter-mm] (a second circular stop at z = Z, both or neither),
   ``fit_frame`` (size the frame and place the principal point to just hold the
   windows of the whole sweep);
 * board: ``square_mm``, ``gap_mm``, ``board_offset`` (mm);
@@ -42,6 +44,8 @@ DEFAULTS: dict[str, Any] = {
     "mla_offset": (0.0, 0.0),
     "main_aperture_mm": None,
     "aperture": "square",
+    "vignetting_stop_mm": None,
+    "vignetting_diameter_mm": None,
     "fit_frame": False,
     "square_mm": 10.0,
     "gap_mm": 0.1,
@@ -187,6 +191,8 @@ def build_spec(**options: Any) -> SweepSpec:
     board = Board(float(o["square_mm"]), float(o["gap_mm"]), _pair(o["board_offset"]))
     corners = CORNER_SETS[o["corners"]]
     offset = _pair(o["mla_offset"])
+    stop_z = _optional_float(o["vignetting_stop_mm"])
+    stop_d = _optional_float(o["vignetting_diameter_mm"])
 
     def camera_of(width: int, height: int, pp: tuple[float, float]) -> Camera:
         return Camera(
@@ -203,6 +209,8 @@ def build_spec(**options: Any) -> SweepSpec:
             lens_origin_px=(pp[0] + offset[0], pp[1] + offset[1]),
             main_aperture_mm=aperture_mm,
             microlens_aperture=o["aperture"],
+            vignetting_stop_mm=stop_z,
+            vignetting_diameter_mm=stop_d,
         )
 
     trial = camera_of(1, 1, (0.0, 0.0))
@@ -263,6 +271,10 @@ def build_spec(**options: Any) -> SweepSpec:
         seed=int(o["seed"]),
         manifest=manifest,
     )
+
+
+def _optional_float(value: Any) -> float | None:
+    return None if value is None else float(value)
 
 
 def _pair(value: Any) -> tuple[float, float]:

@@ -72,7 +72,7 @@ def render_sweep(
             futures = [pool.submit(_render_task, spec, str(out_dir), k) for k in tasks]
             for future in as_completed(futures):
                 note(future.result())
-    log = render_log(stats)
+    log = render_log(stats, spec.camera)
     log["wall_seconds"] = time.perf_counter() - start
     log["jobs"] = jobs
     write_json(out_dir / "render_log.json", log)
@@ -91,8 +91,16 @@ def clear_archive(out_dir: Path) -> None:
             path.unlink()
 
 
+# options added after renders were cached: left out of the key while unset, so the
+# renders cached before them (identical without them) stay valid
+LATE_OPTIONS = ("vignetting_stop_mm", "vignetting_diameter_mm")
+
+
 def _cache_key(options: dict[str, Any]) -> str:
     merged = merged_options(options)
+    for name in LATE_OPTIONS:
+        if merged.get(name) is None:
+            merged.pop(name, None)
     return json.dumps(
         {"version": RENDERER_VERSION, "options": merged}, sort_keys=True, default=list
     )

@@ -12,7 +12,12 @@ centre c, a ray goes through a random point m of that lens's aperture (z = L):
   ``|x0| > A/2`` are blocked (vignetting, soft micro-image rims);
 * the thin main lens (focal F, or F(ρ) with spherical aberration) deflects by
   ``-x0/F``, so on the object side the slope is ``t + x0/F`` and the ray meets
-  the board plane z = -u at ``X = x0 - u·(t + x0/F)``.
+  the board plane z = -u at ``X = x0 - u·(t + x0/F)``;
+* an optional second circular stop at z = Z (diameter A_v, mechanical
+  vignetting) blocks rays whose lateral position there exceeds A_v/2: for
+  0 < Z < L the ray is the straight line from x0 (z = 0) to m (z = L), at
+  ``(1 - Z/L)·x0 + (Z/L)·m``; for Z < 0 it is the object-side ray, at
+  ``x0 + Z·(t + x0/F)`` (F(ρ) with spherical aberration).
 
 Every step is affine in m and s, so each sample point is reduced to a few
 per-point constants and every ray costs a handful of multiply-adds.
@@ -75,6 +80,48 @@ def main_focal_at(camera: Camera, rho2_mm2: np.ndarray, spherical_mm: float) -> 
     return camera.main_focal_mm - spherical_mm * rho2_mm2 / radius2
 
 
+@dataclass(frozen=True)
+class StopPlane:
+    """The second stop's plane: a ray's lateral position there, as an affine map.
+
+    Position ``c_x0·x0 + c_m·m + c_t·t`` (x0 the main-lens point, m the aperture
+    point, t the slope in front of the MLA), plus for a stop in front of the main
+    lens ``Z·x0·(1/F(ρ) - 1/F)`` with spherical aberration (``front``). ``d_m``
+    and ``d_s`` are its derivatives along an aperture offset and a sensor shift.
+    """
+
+    z_mm: float
+    radius2: float
+    c_x0: float
+    c_m: float
+    c_t: float
+    d_m: float
+    d_s: float
+    front: bool
+
+
+def stop_plane(camera: Camera, k: float) -> StopPlane | None:
+    """The camera's second stop (None without one); ``k`` = d x0 / d m."""
+    z, diameter = camera.vignetting_stop_mm, camera.vignetting_diameter_mm
+    if z is None or diameter is None:
+        return None
+    L, b, f = camera.mla_distance_mm, camera.sensor_distance_mm, camera.mla_focal_mm
+    if z > 0:  # the straight line from x0 (z = 0) to m (z = L)
+        c_x0, c_m, c_t = 1.0 - z / L, z / L, 0.0
+    else:  # the object-side ray x0 + z·(t + x0/F)
+        c_x0, c_m, c_t = 1.0 + z / camera.main_focal_mm, 0.0, z
+    return StopPlane(
+        z_mm=z,
+        radius2=(diameter / 2.0) ** 2,
+        c_x0=c_x0,
+        c_m=c_m,
+        c_t=c_t,
+        d_m=c_x0 * k + c_m + c_t * (1.0 / f - 1.0 / b),
+        d_s=-c_x0 * L / b + c_t / b,
+        front=z < 0,
+    )
+
+
 class Tracer:
     """Traces pixels of one camera, at one object distance (or a white board)."""
 
@@ -109,6 +156,7 @@ class Tracer:
         self.dX_dm = g * self.k - u * (1.0 / f - 1.0 / b)
         self.dX_ds = -g * L / b - u / b
         self.radius2 = (camera.main_aperture_mm / 2.0) ** 2
+        self.stop = stop_plane(camera, self.k)
         self.theta_rad = math.radians(camera.theta_deg)
         self.traced_rays = 0
 
@@ -125,7 +173,10 @@ class Tracer:
         x0, y0 and the sensor-side slopes (s - m)/b of the ray through the base
         aperture point m: the lens centre (circle) or the square lens's corner
         at (-D/2, -D/2) along the grid's axes (the random offsets of
-        :meth:`_aperture_samples` are added to it).
+        :meth:`_aperture_samples` are added to it); with a second stop, two more:
+        the ray's lateral position on the stop's plane (:class:`StopPlane`).
+        The footprint test looks at the main aperture only: the second stop can
+        only block more rays.
         """
         cam, n = self.camera, self.settings.subpixel
         L, b, f, D = (
@@ -178,6 +229,12 @@ class Tracer:
         bY = x0y - u * (ty + x0y / F) - oy_mm
         bwx = (px - mx) / b
         bwy = (py - my) / b
+        on_stop: tuple[np.ndarray, ...] = ()
+        if self.stop is not None:
+            st = self.stop
+            zx = st.c_x0 * x0x + st.c_m * mx + st.c_t * tx
+            zy = st.c_x0 * x0y + st.c_m * my + st.c_t * ty
+            on_stop = (zx.astype(F32), zy.astype(F32))
         return (
             lit,
             bX.astype(F32),
@@ -186,6 +243,7 @@ class Tracer:
             x0y.astype(F32),
             bwx.astype(F32),
             bwy.astype(F32),
+            *on_stop,
         )
 
     def _aperture_samples(
@@ -217,8 +275,8 @@ class Tracer:
 
     def _trace_chunk(self, consts: tuple[np.ndarray, ...], rng: np.random.Generator) -> np.ndarray:
         """Sum over the rays of every point of ``reflectance · cos⁴θ · passed``."""
-        bX, bY, b0x, b0y, bwx, bwy = consts
-        cam = self.camera
+        bX, bY, b0x, b0y, bwx, bwy = consts[:6]
+        cam, st = self.camera, self.stop
         L, b = cam.mla_distance_mm, cam.sensor_distance_mm
         shape = (bX.shape[0], self.rays)
         ex, ey = self._aperture_samples(rng, shape)
@@ -236,6 +294,11 @@ class Tracer:
         wx += bwx[:, None]
         wy = ey * F32(-1.0 / b)
         wy += bwy[:, None]
+        if st is not None:  # the ray's lateral position on the second stop's plane
+            zx = ex * F32(st.d_m)
+            zx += consts[6][:, None]
+            zy = ey * F32(st.d_m)
+            zy += consts[7][:, None]
         if self.sampler is not None:
             dx, dy = self.sampler.sample(rng, shape)
             ds = F32(self.dX_ds)
@@ -245,6 +308,9 @@ class Tracer:
             y0 -= dy * F32(L / b)
             wx += dx * F32(1.0 / b)
             wy += dy * F32(1.0 / b)
+            if st is not None:
+                zx += dx * F32(st.d_s)
+                zy += dy * F32(st.d_s)
         r2 = x0 * x0
         r2 += y0 * y0
         if self.settings.spherical_mm:
@@ -254,7 +320,16 @@ class Tracer:
             extra *= F32(-self.u)
             X += x0 * extra
             Y += y0 * extra
+            if st is not None and st.front:  # object side: + Z·x0·(1/F(ρ) - 1/F)
+                extra *= F32(-st.z_mm / self.u)
+                zx += x0 * extra
+                zy += y0 * extra
         passed = r2 <= F32(self.radius2)
+        if st is not None:
+            zx *= zx
+            zy *= zy
+            zx += zy
+            passed &= zx <= F32(st.radius2)
         wx *= wx
         wy *= wy
         wx += wy
