@@ -53,6 +53,7 @@ from .result_notes import (
     corner_disagreement_note,
     priors_section,
     rim_shading_warning,
+    vignetting_note,
     white_clipped_note,
     why_no_corners,
 )
@@ -472,7 +473,8 @@ def combine(
             "their data-sheet values and tolerances; Lr, Lp and La are not available"
         )
     clip_note = clipped_edges_note(frames, g.max_count)
-    warnings.extend(n for n in (white_clipped_note(grid, g.max_count), clip_note) if n)
+    white_notes = (white_clipped_note(grid, g.max_count), vignetting_note(grid, frames), clip_note)
+    warnings.extend(n for n in white_notes if n)
     fit = _fit_sweep(
         frames, arr, g, grid, partial, with_reference=with_reference, clip_hint=clip_note
     )

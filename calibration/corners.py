@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .aperture_mask import ApertureMask
 from .edge_fit import EdgeFits, fit_edges
 from .flat_field import FlatField
 from .lens_grid import LensGrid
@@ -86,6 +87,11 @@ class CornerOptions:
     """The count at which the sensor clips (its full scale, ``2**bit_depth − 1``): the
     edge-spread profiles of a half-edge with a clipped sample are not used
     (:mod:`calibration.clipping`)."""
+    aperture_mask: ApertureMask | None = None
+    """The pixels of micro-images the main lens vignets that still see their whole
+    microlens aperture (:mod:`calibration.aperture_mask`): the edge spreads use only those
+    pixels; a corner measured elsewhere is counted (:attr:`CornerFit.vignetted`), not left
+    out (the reference corner would be lost in most frames)."""
 
     def plateau_px(self, image_pitch_px: float) -> float:
         """Radius (px) of the micro-images' fully lit plateau, ``blur_radius_fraction`` of

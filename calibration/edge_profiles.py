@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from .aperture_mask import ApertureMask
 from .clipping import clipped_at
 from .edge_slope import MIN_CONTRAST, refine_slope, typical_contrast
 from .edge_spread import TAIL_SAMPLES, EdgeProfiles
@@ -77,7 +78,9 @@ class ProfileWindow:
     smooth shading every sample is divided by (:class:`~calibration.flat_field.FlatField`;
     none by default); ``clip_count`` the count at which the sensor clips (its full scale):
     a half-edge with a clipped sample is left out, its edge's shape is lost (none by
-    default)."""
+    default); ``aperture_mask`` the pixels of vignetted micro-images that see their whole
+    microlens aperture: a profile with a sample elsewhere in them is left out
+    (:mod:`calibration.aperture_mask`; none by default)."""
 
     plateau_px: float
     clearance_px: float
@@ -85,6 +88,7 @@ class ProfileWindow:
     half_px: int = 6
     flat_field: FlatField = FlatField()
     clip_count: float = float("inf")
+    aperture_mask: ApertureMask | None = None
 
 
 @dataclass(frozen=True)
@@ -283,6 +287,14 @@ def _cut(
         return None
     across_idx = (start[lens, line][:, None] + h + offsets[None, :]).astype(np.int64)
     along_idx = np.broadcast_to(along[lens, line][:, None], across_idx.shape).astype(np.int64)
+    if window.aperture_mask is not None:
+        # the whole aperture seen at every sample (vignetting clips the defocus kernel)
+        rows_idx, cols_idx = (across_idx, along_idx) if transposed else (along_idx, across_idx)
+        whole = window.aperture_mask.at(rows_idx, cols_idx).all(axis=1)
+        lens, line = lens[whole], line[whole]
+        across_idx, along_idx = across_idx[whole], along_idx[whole]
+        if lens.size == 0:
+            return None
     if transposed:
         values = image[across_idx, along_idx]
     else:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from .aperture_mask import ApertureMask
 from .board import Board
 from .corners import (
     CornerMeasurement,
@@ -78,10 +79,26 @@ class CornerFit:
     note: str = ""
     clipped_half_edges: int = 0
     """Half-edges whose edge spread the sensor clipped (left out of :attr:`esf`)."""
+    vignetted_micro_images: int = 0
+    """Used micro-images that show the corner where the main lens vignets them."""
 
     @property
     def n_used(self) -> int:
         return int(self.used.sum())
+
+    def vignetted(self, mask: ApertureMask | None, image_grid: LensGrid) -> int:
+        """How many of the micro-images its disparity used the main lens vignets
+        (``mask``: :class:`~calibration.aperture_mask.ApertureMask`; ``image_grid`` the
+        micro-image lattice)."""
+        if mask is None:
+            return 0
+        used = [m for m, u in zip(self.measurements, self.used, strict=True) if u]
+        if not used:
+            return 0
+        cx, cy = image_grid.centre(
+            np.array([m.lens_i for m in used]), np.array([m.lens_j for m in used])
+        )
+        return int(np.sum(mask.vignetted(cx, cy)))
 
     def summary(self) -> dict[str, object]:
         return {
@@ -97,6 +114,7 @@ class CornerFit:
             "size_px": self.size_px,
             "edge_width_px": self.edge_width_px,
             "clipped_half_edges": self.clipped_half_edges,
+            "vignetted_micro_images": self.vignetted_micro_images,
             "note": self.note,
         }
 
@@ -377,6 +395,7 @@ def analyze_frame(
             continue
         fit = CornerFit(name, members, np.zeros(len(members), dtype=bool))
         _fit_disparity(fit, ctx)
+        fit.vignetted_micro_images = fit.vignetted(ctx.options.aperture_mask, ctx.image_grid)
         setattr(result, name, fit)
     scale = _board_scale_px_per_mm(result, ctx, object_distance_mm)
     for found in (result.standard, result.reference):
@@ -430,6 +449,7 @@ def _edge_spread(
         half_px=half_px,
         flat_field=opts.flat_field,
         clip_count=opts.clip_count,
+        aperture_mask=opts.aperture_mask,
     )
     assert fit.lattice is not None
     placed = half_edge_profiles(frame, fit.lattice, ctx.lens_grid, ctx.image_grid, window)

@@ -49,6 +49,9 @@ class MeasuredCentres:
     y: NDArray[np.float64]
     level: NDArray[np.float64]  # background-subtracted plateau level at the centre
     spread: NDArray[np.float64]  # flat-top non-uniformity (block_spread), NaN if not computed
+    area: NDArray[
+        np.float64
+    ]  # lit area: sum of the clipped, normalised intensity (px²), NaN if unlit
 
 
 def gather_patches(
@@ -132,8 +135,9 @@ def _measure_chunk(
     wsum = np.where(good, mom[:, 0], 1.0)
     x = np.where(good, xi + mom[:, 1] / wsum, np.nan)
     y = np.where(good, yi + mom[:, 2] / wsum, np.nan)
+    area = np.where(good, mom[:, 0], np.nan)
     level = np.where(np.isfinite(level), level, 0.0)
-    return MeasuredCentres(x, y, level, spread)
+    return MeasuredCentres(x, y, level, spread, area)
 
 
 def measure_centres(
@@ -157,6 +161,7 @@ def measure_centres(
         np.concatenate([p.y for p in parts]),
         np.concatenate([p.level for p in parts]),
         np.concatenate([p.spread for p in parts]),
+        np.concatenate([p.area for p in parts]),
     )
 
 

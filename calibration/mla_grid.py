@@ -103,6 +103,7 @@ from .mla_lattice import (
 )
 from .mla_spectrum import Lattice, initial_lattice
 from .shading import WhiteShading
+from .vignetting import vignetting_onset
 from .white_screen import check_white, validate_white
 
 __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
@@ -111,7 +112,13 @@ __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
 STATUS_USED = 0
 STATUS_DEAD = 1
 STATUS_OUTLIER = 2
-STATUS_NAMES = {STATUS_USED: "used", STATUS_DEAD: "dead", STATUS_OUTLIER: "outlier"}
+STATUS_VIGNETTED = 3
+STATUS_NAMES = {
+    STATUS_USED: "used",
+    STATUS_DEAD: "dead",
+    STATUS_OUTLIER: "outlier",
+    STATUS_VIGNETTED: "vignetted",
+}
 
 _SUBSET_MAX = 400  # lenses per early (sparse) round
 
@@ -126,7 +133,9 @@ class MlaGrid:
     profile falls to half its plateau. ``n_rejected`` counts every lens whose
     centre lies on the sensor but was not used: ``rejected`` gives the reasons
     (``border``: disc cut by the sensor edge; ``dead``: dark lens; ``outlier``:
-    centre off the lattice). The per-lens arrays cover the measured lenses
+    centre off the lattice; ``vignetted``: disc cut by the main lens's vignetting,
+    beyond ``vignetting_onset_px`` from the principal point, :mod:`calibration.vignetting`).
+    The per-lens arrays cover the measured lenses
     (not the border ones): index ``lens_i``, ``lens_j``, measured centre
     ``measured_x``, ``measured_y``, residual ``residual_x/y`` (measured minus
     fitted) and ``lens_status`` (:data:`STATUS_NAMES`).
@@ -156,6 +165,9 @@ class MlaGrid:
     shading: WhiteShading | None = None
     white_clipped_fraction: float = 0.0
     """The fraction of the white image's lit pixels at the sensor's full scale."""
+    vignetting_onset_px: float = math.inf
+    """Distance from the principal point (px) beyond which the micro-images are cut by the
+    main lens's vignetting and left out of the lattice (``inf``: none are)."""
 
     @property
     def residual_px(self) -> NDArray[np.float64]:
@@ -214,6 +226,9 @@ class MlaGrid:
             "background": self.background,
             "shading": None if self.shading is None else self.shading.to_dict(),
             "white_clipped_fraction": self.white_clipped_fraction,
+            "vignetting_onset_px": (
+                None if math.isinf(self.vignetting_onset_px) else self.vignetting_onset_px
+            ),
         }
         if include_lenses:
             out["lenses"] = {
@@ -361,11 +376,14 @@ def fit_mla_grid(
 def _setup(
     img: NDArray[Any],
     lat: Lattice,
+    pp: tuple[float, float],
     dead_fraction: float,
     max_dark_fraction: float,
     max_nonflat_fraction: float,
 ) -> tuple[CentroidParams, float]:
-    """Background, noise, thresholds and the disc radius from ≤ 128 lenses near the image centre.
+    """Background, noise, thresholds and the disc radius from ≤ 128 lenses nearest the
+    principal point ``pp`` (or the nearest point of the image when it lies outside):
+    there the main lens does not vignet the discs (:mod:`calibration.vignetting`).
 
     Also screens those lenses: too many dark or non-uniform micro-images mean
     the image is not a white image (``ValueError``).
@@ -379,7 +397,8 @@ def _setup(
             f"white image: only {ii.size} whole micro-images in view (need {MIN_LENSES})"
         )
     x, y = lat.centre(ii, jj)
-    order = np.argsort(np.hypot(x - (w - 1) / 2, y - (h - 1) / 2))[:128]
+    near_x, near_y = min(max(pp[0], 0.0), w - 1.0), min(max(pp[1], 0.0), h - 1.0)
+    order = np.argsort(np.hypot(x - near_x, y - near_y))[:128]
     x, y = x[order], y[order]
     bg, noise = background_level(img, x, y, half, pitch)
     xi, yi, r = local_radius(x, y, half)
@@ -410,7 +429,7 @@ def _fit(
     say: Callable[[str], None],
 ) -> MlaGrid:
     h, w = img.shape
-    prm, r_half = _setup(img, lat, dead_fraction, max_dark_fraction, max_nonflat_fraction)
+    prm, r_half = _setup(img, lat, pp, dead_fraction, max_dark_fraction, max_nonflat_fraction)
     margin = max(prm.half, r_half + 2.0) + 1.0
     sparse_phase = True
     last: _Round | None = None
@@ -429,10 +448,25 @@ def _fit(
         xp, yp = lat.centre(ii, jj)
         m = measure_centres(img, xp, yp, prm, pool, flatness=iterations == 1)
         dead = dead_lenses(m.x, m.y, m.level, dead_fraction)
+        # discs cut by the main lens's vignetting are not centred where the lattice is, nor
+        # flat on top
+        radius = np.hypot(xp - pp[0], yp - pp[1])
+        onset = vignetting_onset(radius, np.where(dead, np.nan, m.area), lat.pitch)
+        vignetted = radius > onset
+        if np.sum(~dead & ~vignetted) < MIN_LENSES:
+            vignetted[:] = False
         if iterations == 1:
-            check_white(dead, m.spread, max_dark_fraction, max_nonflat_fraction)
+            check_white(
+                dead[~vignetted], m.spread[~vignetted], max_dark_fraction, max_nonflat_fraction
+            )
         new, keep = robust_fit(
-            ii, jj, m.x, m.y, ~dead, outlier_sigma=outlier_sigma, outlier_floor_px=outlier_floor_px
+            ii,
+            jj,
+            m.x,
+            m.y,
+            ~dead & ~vignetted,
+            outlier_sigma=outlier_sigma,
+            outlier_floor_px=outlier_floor_px,
         )
         moved = max_move_px(lat, new, w, h)
         say(
@@ -445,7 +479,7 @@ def _fit(
         if sparse:
             sparse_phase = moved >= 0.05 and iterations < 4
             continue
-        last = _Round(ii, jj, m, dead, keep, n_border)
+        last = _Round(ii, jj, m, dead, vignetted, keep, n_border, onset)
         if moved < tol_px:
             break
     if last is not None and moved >= tol_px:
@@ -462,9 +496,7 @@ def _fit(
         last.i - di,
         last.j - dj,
         last.m,
-        last.dead,
-        last.keep,
-        last.n_border,
+        last,
         lens_pitch_px,
         pp,
         iterations,
@@ -479,8 +511,10 @@ class _Round:
     j: NDArray[np.int64]
     m: MeasuredCentres
     dead: NDArray[np.bool_]
+    vignetted: NDArray[np.bool_]
     keep: NDArray[np.bool_]
     n_border: int
+    vignetting_onset_px: float
 
 
 def _result(
@@ -490,9 +524,7 @@ def _result(
     ii: NDArray[np.int64],
     jj: NDArray[np.int64],
     m: MeasuredCentres,
-    dead: NDArray[np.bool_],
-    keep: NDArray[np.bool_],
-    n_border: int,
+    last: _Round,
     lens_pitch_px: float,
     pp: tuple[float, float],
     iterations: int,
@@ -503,16 +535,19 @@ def _result(
     lens_grid = LensGrid(scaled.origin_px, float(lens_pitch_px), image_grid.rotation_rad)
     px, py = lat.centre(ii, jj)
     rx, ry = m.x - px, m.y - py
+    dead, keep = last.dead, last.keep
     status = np.full(ii.size, STATUS_OUTLIER, dtype=np.int8)
+    status[last.vignetted] = STATUS_VIGNETTED
     status[dead] = STATUS_DEAD
     status[keep] = STATUS_USED
     res = np.hypot(rx[keep], ry[keep])
     radii, prof = radial_profile_normalized(img, lat, ii[keep], jj[keep], prm)
     disc = half_radius(radii, prof)
     rejected = {
-        "border": n_border,
+        "border": last.n_border,
         "dead": int(np.sum(status == STATUS_DEAD)),
         "outlier": int(np.sum(status == STATUS_OUTLIER)),
+        "vignetted": int(np.sum(status == STATUS_VIGNETTED)),
     }
     return MlaGrid(
         image_grid=image_grid,
@@ -536,4 +571,5 @@ def _result(
         residual_x=np.asarray(rx, dtype=np.float64),
         residual_y=np.asarray(ry, dtype=np.float64),
         lens_status=status,
+        vignetting_onset_px=last.vignetting_onset_px,
     )

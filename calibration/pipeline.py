@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .aperture_mask import full_aperture_mask
 from .archive import ImageError, SweepArchive
 from .blas_threads import single_blas_thread
 from .camera_model import ModelError, check_priors
@@ -110,7 +111,11 @@ class FrameAnalyzer:
             principal_point_px=geometry.principal_point_px,
         )
         shading = measure_shading(
-            white, grid.image_grid, background=grid.background, lens_grid=grid.lens_grid
+            white,
+            grid.image_grid,
+            background=grid.background,
+            lens_grid=grid.lens_grid,
+            unvignetted=(grid.principal_point_px, grid.vignetting_onset_px),
         )
         options = options or CalibrationOptions()
         if geometry.max_count is not None:
@@ -128,6 +133,20 @@ class FrameAnalyzer:
             # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
             corner = dataclasses.replace(options.corner, flat_field=flat_field)
             options = dataclasses.replace(options, corner=corner)
+        if flat_field is not None:
+            # vignetted micro-images: only the pixels that see the whole microlens aperture
+            mask = full_aperture_mask(
+                white,
+                grid.image_grid,
+                grid.lens_grid,
+                flat_field,
+                plateau_px=options.corner.plateau_px(grid.image_grid.pitch_px),
+                principal_point_px=grid.principal_point_px,
+                onset_px=grid.vignetting_onset_px,
+            )
+            if mask is not None:
+                corner = dataclasses.replace(options.corner, aperture_mask=mask)
+                options = dataclasses.replace(options, corner=corner)
         grid = dataclasses.replace(grid, shading=shading, white_clipped_fraction=clipped)
         return cls(geometry, grid, options)
 

@@ -198,6 +198,38 @@ def white_clipped_note(grid: MlaGrid, max_count: int | None) -> str:
     )
 
 
+def vignetting_note(grid: MlaGrid, frames: Sequence[FrameSummary]) -> str:
+    """What the main lens's vignetting took ("" when the white image shows none): where it
+    starts, the white image's micro-images left out of the lattice, and the corners
+    measured in vignetted micro-images (:mod:`calibration.vignetting`)."""
+    onset = grid.vignetting_onset_px
+    if not math.isfinite(onset):
+        return ""
+    note = (
+        f"the main lens vignets the micro-images beyond {onset:.0f} px from the principal "
+        f"point ({grid.rejected.get('vignetted', 0)} of the white image's micro-images are "
+        "cut): the lattice, the shading and the plateau were measured inside that radius, "
+        "and the edge spreads use only the pixels that see the whole microlens aperture"
+    )
+    parts = []
+    for name in ("standard", "reference"):
+        counts = [
+            int((getattr(fs, name) or {}).get("vignetted_micro_images") or 0) for fs in frames
+        ]
+        hit = [n for n in counts if n > 0]
+        if hit:
+            parts.append(f"the {name} corner in {len(hit)} of {len(frames)} frames")
+    if parts:
+        note += (
+            f"; {' and '.join(parts)} was measured in vignetted micro-images, whose disparity "
+            "and main image can be biased (on a ray-traced camera whose rear stop cut a "
+            "quarter of each of the reference corner's micro-images, b -0.02 % and F -0.02 %, "
+            "within their sigma): for the best b and F, place the reference corner where the "
+            "main lens does not vignet, nearer the axis or with the lens stopped down"
+        )
+    return note
+
+
 def corner_disagreement_note(agreement: dict[str, Any]) -> str:
     """A warning when the two corners measure different Q in the same frames ("" otherwise;
     ``agreement`` from :func:`calibration.two_corners.corner_agreement`)."""
@@ -221,6 +253,7 @@ __all__ = [
     "corner_disagreement_note",
     "priors_section",
     "rim_shading_warning",
+    "vignetting_note",
     "white_clipped_note",
     "why_no_corners",
 ]

@@ -210,6 +210,7 @@ def measure_shading(
     *,
     background: float = 0.0,
     lens_grid: LensGrid | None = None,
+    unvignetted: tuple[tuple[float, float], float] | None = None,
 ) -> WhiteShading:
     """The curvature of ``log W`` inside the micro-images of a white image, and the radius
     of their fully lit plateau.
@@ -217,13 +218,15 @@ def measure_shading(
     ``image_grid`` is the fitted micro-image lattice (pixels);
     ``background`` the dark level to subtract (counts); ``lens_grid`` the lens
     centres' projections (same indices), which the curvature from the micro-images'
-    tilt needs (not measured without it). The curvature is fitted inside
-    ``INTERIOR_FRACTION`` of the half pitch, or inside the plateau when that ends
-    sooner.
+    tilt needs (not measured without it); ``unvignetted`` the principal point and the
+    radius about it (px) outside which the main lens vignets the micro-images
+    (:mod:`calibration.vignetting`): only micro-images inside it are measured. The
+    curvature is fitted inside ``INTERIOR_FRACTION`` of the half pitch, or inside the
+    plateau when that ends sooner.
     """
-    plateau = measure_plateau(white, image_grid, background=background)
+    plateau = measure_plateau(white, image_grid, background=background, unvignetted=unvignetted)
     fraction = INTERIOR_FRACTION if not np.isfinite(plateau) else min(INTERIOR_FRACTION, plateau)
-    samples = _samples(white, image_grid, background, fraction)
+    samples = _samples(white, image_grid, background, fraction, unvignetted=unvignetted)
     if samples is None:
         return WhiteShading(float("nan"), float("nan"), 0, plateau)
     dx, dy, good = samples.dx, samples.dy, samples.good
@@ -320,7 +323,13 @@ def _curvature(
     return -2.0 * slope, 2.0 * float(np.sqrt(sigma2 / sxx))
 
 
-def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: float = 0.0) -> float:
+def measure_plateau(
+    white: NDArray[Any],
+    image_grid: LensGrid,
+    *,
+    background: float = 0.0,
+    unvignetted: tuple[tuple[float, float], float] | None = None,
+) -> float:
     """Radius where the micro-images of a white image stop being fully lit (fraction of
     half the micro-image pitch; NaN when it cannot be measured).
 
@@ -330,10 +339,16 @@ def measure_plateau(white: NDArray[Any], image_grid: LensGrid, *, background: fl
     ``PLATEAU_BIN_PX``, stays at 1 on the plateau. The plateau ends at the
     inner edge of the first bin whose mean falls more than ``PLATEAU_TOLERANCE``
     (or three of its standard errors, in a noisy white image) below 1;
-    ``PLATEAU_MAX_FRACTION`` when none does.
+    ``PLATEAU_MAX_FRACTION`` when none does. ``unvignetted``: as for
+    :func:`measure_shading`.
     """
     samples = _samples(
-        white, image_grid, background, PLATEAU_MAX_FRACTION, max_images=PLATEAU_MAX_MICRO_IMAGES
+        white,
+        image_grid,
+        background,
+        PLATEAU_MAX_FRACTION,
+        max_images=PLATEAU_MAX_MICRO_IMAGES,
+        unvignetted=unvignetted,
     )
     if samples is None:
         return float("nan")
@@ -394,14 +409,21 @@ def _samples(
     fraction: float,
     *,
     max_images: int = MAX_MICRO_IMAGES,
+    unvignetted: tuple[tuple[float, float], float] | None = None,
 ) -> _Samples | None:
     """Pixels within ``fraction`` of half the pitch of up to ``max_images`` lit
-    micro-images (evenly spread over the sensor)."""
+    micro-images (evenly spread over the sensor, within ``unvignetted``'s radius of its
+    principal point when given)."""
     img = np.asarray(white, dtype=np.float64) - background
     h, w = img.shape
     pitch = image_grid.pitch_px
     radius = fraction * 0.5 * pitch
     ii, jj = image_grid.indices_in(w, h, margin_px=radius + 1)
+    if unvignetted is not None and ii.size:
+        (px, py), limit = unvignetted
+        cx, cy = image_grid.centre(ii, jj)
+        inside = np.hypot(cx - px, cy - py) <= limit
+        ii, jj = ii[inside], jj[inside]
     if ii.size == 0:
         return None
     keep = np.linspace(0, ii.size - 1, min(max_images, ii.size)).astype(np.int64)

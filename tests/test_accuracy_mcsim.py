@@ -173,3 +173,44 @@ def test_micro_images_too_small_for_the_corner_are_named(tmp_path: Path) -> None
     assert "corner was found in only 0 of 9 frames" in message
     assert "micro-images are too small" in message and "micro-image interior" in message
     assert "in view" not in message
+
+
+def test_a_main_lens_that_vignets_the_field_is_calibrated(tmp_path: Path) -> None:
+    """A rear stop 12 mm behind the main lens cuts the micro-images from ~900 px off the
+    axis (a quarter of each of the reference corner's, 40 % of the white image's outermost
+    ones). The cut discs' centroids move away from the axis: fitted with them, the white
+    image's pitch gave (L+b)/L 4e-3 too large and b +0.22 %, a +0.13 %. They are left out
+    of the lattice, the shading and the plateau, and the result says where and which
+    corner was measured in vignetted micro-images."""
+    sweep = _short_sweep(
+        tmp_path / "vignetted", 5, "--vignetting-stop-mm", "12", "--vignetting-diameter-mm", "3"
+    )
+    result, truth = calibrate(sweep)
+    check_accuracy(result, truth)
+    onset = result["mla"]["vignetting_onset_px"]
+    assert 700.0 < onset < 1000.0, onset
+    assert result["mla"]["rejected"]["vignetted"] > 100
+    scale = 1.0 + truth["b_mm"] / truth["L_mm"]
+    assert abs(result["mla"]["scale"] - scale) < 5e-5, result["mla"]["scale"] - scale
+    assert abs(result["b_mm"] / truth["b_mm"] - 1) < 1e-3
+    assert abs(result["a_mm"] / truth["a_f_mm"] - 1) < 1e-3
+    notes = [w for w in result["warnings"] if "main lens vignets" in w]
+    assert len(notes) == 1 and f"beyond {onset:.0f} px" in notes[0]
+    assert "the reference corner in" in notes[0] and "the standard corner" not in notes[0]
+    frames = [f for f in result["frames"] if (f.get("reference") or {}).get("found")]
+    assert frames and all(f["reference"]["vignetted_micro_images"] > 0 for f in frames)
+    assert all(f["standard"]["vignetted_micro_images"] == 0 for f in result["frames"])
+
+
+def test_a_white_image_vignetted_from_600_px_is_still_a_white_image(tmp_path: Path) -> None:
+    """A narrower rear stop: the micro-images are cut from ~600 px off the axis, two
+    thirds of the reference corner's plateau. That white image was refused as "not a
+    white image" (a quarter of its micro-images not flat on top); now it is measured
+    inside the onset and the camera comes out within its uncertainties."""
+    sweep = _short_sweep(
+        tmp_path / "vignetted", 5, "--vignetting-stop-mm", "12", "--vignetting-diameter-mm", "2.5"
+    )
+    result, truth = calibrate(sweep)
+    check_accuracy(result, truth)
+    assert 400.0 < result["mla"]["vignetting_onset_px"] < 800.0
+    assert abs(result["mla"]["scale"] - 1.0 - truth["b_mm"] / truth["L_mm"]) < 5e-5

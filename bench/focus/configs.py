@@ -238,6 +238,17 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
         ),
         SweepConfig(
             "mcsim",
+            "small-2mm-vignetted",
+            _args(
+                "--preset small --step-mm 2 --frames 50 "
+                "--vignetting-stop-mm 12 --vignetting-diameter-mm 3"
+            ),
+            28,
+            "50 px lenses, a rear stop 12 mm behind the main lens that cuts the micro-images "
+            "from ~900 px off the axis (a quarter of each of the reference corner's), 2 mm steps",
+        ),
+        SweepConfig(
+            "mcsim",
             "paper-standard",
             _args("--preset paper --corners standard --fit-frame"),
             23,
