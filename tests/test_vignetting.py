@@ -106,15 +106,13 @@ def test_the_lattice_leaves_the_cut_discs_out() -> None:
 def test_the_shading_is_measured_inside_the_onset() -> None:
     plain, vignetted = _grid(False), _grid(True)
     white_plain, white_cut = _white(False)[0], _white(True)[0]
-    kwargs = {"background": 0.0}
-    ref = measure_shading(white_plain, plain.image_grid, lens_grid=plain.lens_grid, **kwargs)
+    ref = measure_shading(white_plain, plain.image_grid, lens_grid=plain.lens_grid)
     cut_all = measure_shading(white_cut, vignetted.image_grid, lens_grid=vignetted.lens_grid)
     inside = measure_shading(
         white_cut,
         vignetted.image_grid,
         lens_grid=vignetted.lens_grid,
         unvignetted=(CAMERA["pp"], vignetted.vignetting_onset_px),
-        **kwargs,
     )
     # over the whole sensor the cut discs bend the shading (the micro-images tilt the
     # wrong way); inside the onset it is the unvignetted white's
