@@ -64,9 +64,7 @@ def area_deficit(
     out = np.full(area_px2.shape, np.nan)
     if not finite.any():
         return out
-    order = np.argsort(np.where(finite, radius_px, np.inf))[
-        : min(REFERENCE_MICRO_IMAGES, int(finite.sum()))
-    ]
+    order = np.argsort(np.where(finite, radius_px, np.inf))[: _reference_count(int(finite.sum()))]
     reference = float(np.median(area_px2[order]))
     if not reference > 0:
         return out
@@ -94,8 +92,10 @@ def vignetting_onset(
     ``radius_px``: each micro-image centre's distance from the principal point;
     ``area_px2``: its lit area (any consistent measure); ``pitch_px``: the micro-image
     pitch. Rings ``RING_PITCHES`` wide, outwards from the reference micro-images; the
-    first whose median deficit exceeds ``max(tolerance, 3·standard error)`` starts the
-    vignetting.
+    first whose median deficit exceeds that of every micro-image inside it by
+    ``max(tolerance, 3·standard error)`` is vignetted. The cut grows from zero inside
+    that ring: the onset is where the line through its and the next ring's excess
+    deficits (against their median radii) reaches zero, if that lies further in.
     """
     deficit = area_deficit(radius_px, area_px2)
     ok = np.isfinite(deficit)
@@ -105,20 +105,45 @@ def vignetting_onset(
     r, d = radius_px[ok], deficit[ok]
     order = np.argsort(r)
     r, d = r[order], d[order]
-    start = float(r[n_reference - 1])
-    width = RING_PITCHES * pitch_px
-    edge = start
+    rings = _rings(r, float(r[n_reference - 1]), RING_PITCHES * pitch_px)
+    for k, (inner, outer) in enumerate(rings):
+        excess, se, centre = _excess(r, d, inner, outer)
+        if excess <= max(tolerance, 3.0 * se):
+            continue
+        onset = inner
+        if k + 1 < len(rings):
+            nxt, _, nxt_centre = _excess(r, d, *rings[k + 1])
+            if nxt > excess and nxt_centre > centre:
+                onset = min(onset, centre - excess * (nxt_centre - centre) / (nxt - excess))
+        return max(0.0, onset - MARGIN_PITCHES * pitch_px)
+    return math.inf
+
+
+def _rings(r: NDArray[np.float64], start: float, width: float) -> list[tuple[float, float]]:
+    """``(inner, outer]`` radii of rings ``width`` wide from ``start`` outwards, each widened
+    until it holds ``MIN_RING_MICRO_IMAGES`` (``r`` sorted)."""
+    rings, edge = [], start
     while edge < r[-1]:
         outer = edge + width
-        ring = (r > edge) & (r <= outer)
-        while ring.sum() < MIN_RING_MICRO_IMAGES and outer < r[-1]:
+        while np.sum((r > edge) & (r <= outer)) < MIN_RING_MICRO_IMAGES and outer < r[-1]:
             outer += width
-            ring = (r > edge) & (r <= outer)
-        if ring.sum() < MIN_RING_MICRO_IMAGES:
+        if np.sum((r > edge) & (r <= outer)) < MIN_RING_MICRO_IMAGES:
             break
-        vals = d[ring]
-        se = 1.2533 * float(np.std(vals, ddof=1) / np.sqrt(vals.size))  # of the median
-        if float(np.median(vals)) > max(tolerance, 3.0 * se):
-            return max(0.0, edge - MARGIN_PITCHES * pitch_px)
+        rings.append((edge, outer))
         edge = outer
-    return math.inf
+    return rings
+
+
+def _excess(
+    r: NDArray[np.float64], d: NDArray[np.float64], inner: float, outer: float
+) -> tuple[float, float, float]:
+    """The ring's median deficit over that of every micro-image inside it, the standard
+    error of that difference (of two medians), and the ring's median radius."""
+    ring, inside = d[(r > inner) & (r <= outer)], d[r <= inner]
+
+    def median_se(v: NDArray[np.float64]) -> float:
+        return 1.2533 * float(np.std(v, ddof=1) / np.sqrt(v.size)) if v.size > 1 else 0.0
+
+    se = float(np.hypot(median_se(ring), median_se(inside)))
+    centre = float(np.median(r[(r > inner) & (r <= outer)]))
+    return float(np.median(ring) - np.median(inside)), se, centre
