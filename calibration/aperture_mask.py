@@ -43,6 +43,9 @@ MIN_TOLERANCE = 2e-3
 NOISE_SIGMAS = 4.0
 """The tolerance is at least this many standard deviations of the smoothed ratio's noise."""
 
+CHUNK = 256
+"""Micro-images processed at once (memory: ~5 MB each for 100 px lenses)."""
+
 
 @dataclass(frozen=True, eq=False)
 class ApertureMask:
@@ -91,49 +94,77 @@ def full_aperture_mask(
         return None
     img = np.asarray(white, dtype=np.float64)
     h, w = img.shape
-    half = int(math.ceil(plateau_px)) + SMOOTH_PX // 2 + 1
     ii, jj = image_grid.indices_in(w, h, margin_px=0.0)
     cx, cy = image_grid.centre(ii, jj)
     far = np.hypot(cx - principal_point_px[0], cy - principal_point_px[1]) > onset_px
-    ii, jj, cx, cy = ii[far], jj[far], cx[far], cy[far]
+    ii, jj = ii[far], jj[far]
     full = np.ones((h, w), dtype=bool)
     if ii.size == 0:
         return ApertureMask(full, 0, MIN_TOLERANCE, principal_point_px, onset_px)
-    mx, my = lens_grid.centre(ii, jj)
-    gx, gy = flat_field.gradients((cx, cy), (mx, my))
-    x0, y0 = np.rint(cx).astype(np.intp), np.rint(cy).astype(np.intp)
-    off = np.arange(-half, half + 1)
-    shape = (ii.size, off.size, off.size)
-    rows = np.broadcast_to(y0[:, None, None] + off[None, :, None], shape)
-    cols = np.broadcast_to(x0[:, None, None] + off[None, None, :], shape)
-    on_sensor = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-    values = img[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)] - flat_field.background
-    dx, dy = cols - cx[:, None, None], rows - cy[:, None, None]
-    log_w = (
-        gx[:, None, None] * dx
-        + gy[:, None, None] * dy
-        - 0.5 * flat_field.curvature_px2 * (dx * dx + dy * dy)
-    )
-    ratio = np.where(on_sensor, values * np.exp(-log_w), np.nan)
-    disc = (dx * dx + dy * dy <= plateau_px * plateau_px) & on_sensor
-    # averaged over the plateau only (normalised convolution): the rim beyond it falls
-    filled = np.where(disc, ratio, 0.0)
-    size = (1, SMOOTH_PX, SMOOTH_PX)
-    weight = uniform_filter(disc.astype(np.float64), size=size, mode="constant")
-    smooth = uniform_filter(filled, size=size, mode="constant") / np.maximum(weight, 1e-12)
-    level = np.array(
-        [
-            np.quantile(s[d], LEVEL_QUANTILE) if d.any() else np.nan
-            for s, d in zip(smooth, disc, strict=True)
-        ]
-    )
-    # the smoothed ratio's noise, from the pixels' scatter about it on the lit plateau
-    lit = disc & (smooth >= 0.98 * level[:, None, None])
-    rel = ((filled - smooth) / level[:, None, None])[lit]
+    patches = _Patches(img, image_grid, lens_grid, flat_field, plateau_px)
+    # the smoothed ratio's noise, from the pixels' scatter about it on the lit plateau of
+    # up to CHUNK micro-images spread over the vignetted field
+    sample = np.linspace(0, ii.size - 1, min(CHUNK, ii.size)).astype(np.intp)
+    _, _, disc, filled, smooth, level = patches.ratio(ii[sample], jj[sample])
+    lit = disc & (smooth >= 0.98 * level[:, None, None])  # False where level is NaN
+    rel = (filled - smooth)[lit] / np.broadcast_to(level[:, None, None], lit.shape)[lit]
     pixel_noise = 1.4826 * float(np.median(np.abs(rel))) if rel.size else 0.0
     tolerance = max(MIN_TOLERANCE, NOISE_SIGMAS * pixel_noise / SMOOTH_PX)
-    keep = smooth >= level[:, None, None] * (1.0 - tolerance)
-    # only each micro-image's own plateau is written (patches do not reach a neighbour's)
-    mark = disc & np.isfinite(level)[:, None, None]
-    full[rows[mark], cols[mark]] = keep[mark]
+    for start in range(0, ii.size, CHUNK):
+        rows, cols, disc, _, smooth, level = patches.ratio(
+            ii[start : start + CHUNK], jj[start : start + CHUNK]
+        )
+        keep = smooth >= level[:, None, None] * (1.0 - tolerance)
+        # only each micro-image's own plateau is written (patches do not reach a neighbour's);
+        # an unlit one (level NaN) keeps nothing
+        full[rows[disc], cols[disc]] = keep[disc]
     return ApertureMask(full, int(ii.size), tolerance, principal_point_px, onset_px)
+
+
+class _Patches:
+    """The white image about vignetted micro-images, divided by the shading and smoothed."""
+
+    def __init__(
+        self,
+        img: NDArray[np.float64],
+        image_grid: LensGrid,
+        lens_grid: LensGrid,
+        flat_field: FlatField,
+        plateau_px: float,
+    ) -> None:
+        self.img, self.image_grid, self.lens_grid = img, image_grid, lens_grid
+        self.flat_field, self.plateau_px = flat_field, plateau_px
+        self.half = int(math.ceil(plateau_px)) + SMOOTH_PX // 2 + 1
+
+    def ratio(self, ii: NDArray[np.int64], jj: NDArray[np.int64]) -> tuple[NDArray[Any], ...]:
+        """Per micro-image ``(i, j)``: the patch's pixel rows and columns, its plateau
+        (``disc``), the white over the shading there (``filled``, 0 elsewhere), that
+        averaged over ``SMOOTH_PX``² plateau pixels (``smooth``) and the lit ``level``."""
+        img, ff = self.img, self.flat_field
+        h, w = img.shape
+        cx, cy = self.image_grid.centre(ii, jj)
+        gx, gy = ff.gradients((cx, cy), self.lens_grid.centre(ii, jj))
+        x0, y0 = np.rint(cx).astype(np.intp), np.rint(cy).astype(np.intp)
+        off = np.arange(-self.half, self.half + 1)
+        shape = (ii.size, off.size, off.size)
+        rows = np.broadcast_to(y0[:, None, None] + off[None, :, None], shape)
+        cols = np.broadcast_to(x0[:, None, None] + off[None, None, :], shape)
+        on_sensor = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        values = img[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)] - ff.background
+        dx, dy = cols - cx[:, None, None], rows - cy[:, None, None]
+        rr = dx * dx + dy * dy
+        log_w = gx[:, None, None] * dx + gy[:, None, None] * dy - 0.5 * ff.curvature_px2 * rr
+        disc = (rr <= self.plateau_px**2) & on_sensor
+        # averaged over the plateau only (normalised convolution): the rim beyond it falls
+        filled = np.where(disc, values * np.exp(-log_w), 0.0)
+        size = (1, SMOOTH_PX, SMOOTH_PX)
+        weight = uniform_filter(disc.astype(np.float64), size=size, mode="constant")
+        smooth = uniform_filter(filled, size=size, mode="constant") / np.maximum(weight, 1e-12)
+        level = np.array(
+            [
+                np.quantile(s[d], LEVEL_QUANTILE) if d.any() else np.nan
+                for s, d in zip(smooth, disc, strict=True)
+            ]
+        )
+        level = np.where(level > 0, level, np.nan)  # a micro-image the vignetting darkens whole
+        return rows, cols, disc, filled, smooth, level

@@ -90,8 +90,9 @@ class CornerOptions:
     aperture_mask: ApertureMask | None = None
     """The pixels of micro-images the main lens vignets that still see their whole
     microlens aperture (:mod:`calibration.aperture_mask`): the edge spreads use only those
-    pixels; a corner measured elsewhere is counted (:attr:`CornerFit.vignetted`), not left
-    out (the reference corner would be lost in most frames)."""
+    pixels. Corners are still measured in vignetted micro-images, and counted
+    (``CornerFit.vignetted_micro_images``): leaving them out lost the reference corner in
+    most frames."""
 
     def plateau_px(self, image_pitch_px: float) -> float:
         """Radius (px) of the micro-images' fully lit plateau, ``blur_radius_fraction`` of
