@@ -11,6 +11,7 @@ seed without the stop is the reference.
 from __future__ import annotations
 
 import math
+import warnings
 from functools import cache
 from typing import Any
 
@@ -205,3 +206,39 @@ def test_the_mask_keeps_the_pixels_that_see_the_whole_aperture(kind: str) -> Non
     assert unclipped_dropped < 0.15 * unclipped, (unclipped_dropped, unclipped)
     sign = 1.0 if kind == "rear" else -1.0
     assert all(sign * dx > 3.0 for dx in cut_side) and len(cut_side) > 20, cut_side
+
+
+def test_a_micro_image_the_vignetting_darkens_whole_keeps_no_pixel() -> None:
+    """At the far corners of a full sensor the vignetting can take a micro-image's whole
+    light (a 5120×5120 white image of the paper's camera had such discs): its level is 0,
+    and none of its pixels may count as seeing the whole aperture."""
+    vignetted = _grid("rear")
+    white, cam = _white("rear")
+    white = white.copy()
+    ii, jj = vignetted.image_grid.indices_in(cam.width, cam.height, margin_px=30.0)
+    cx, cy = vignetted.image_grid.centre(ii, jj)
+    far = int(np.argmax(np.hypot(cx - CAMERA["pp"][0], cy - CAMERA["pp"][1])))
+    x, y = round(float(cx[far])), round(float(cy[far]))
+    white[y - 26 : y + 27, x - 26 : x + 27] = 0.0
+    shading = measure_shading(
+        white,
+        vignetted.image_grid,
+        lens_grid=vignetted.lens_grid,
+        unvignetted=(CAMERA["pp"], vignetted.vignetting_onset_px),
+    )
+    flat = shading.flat_field(0.0)
+    assert flat is not None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mask = full_aperture_mask(
+            white,
+            vignetted.image_grid,
+            vignetted.lens_grid,
+            flat,
+            plateau_px=shading.plateau_fraction * 0.5 * vignetted.image_pitch_px,
+            principal_point_px=CAMERA["pp"],
+            onset_px=vignetted.vignetting_onset_px,
+        )
+    assert mask is not None
+    assert not mask.full[y - 5 : y + 6, x - 5 : x + 6].any()
+    assert 0.002 <= mask.tolerance < 0.02
