@@ -49,9 +49,8 @@ class MeasuredCentres:
     y: NDArray[np.float64]
     level: NDArray[np.float64]  # background-subtracted plateau level at the centre
     spread: NDArray[np.float64]  # flat-top non-uniformity (block_spread), NaN if not computed
-    area: NDArray[
-        np.float64
-    ]  # lit area: sum of the clipped, normalised intensity (px²), NaN if unlit
+    # lit area: sum of the clipped, normalised intensity (px²), NaN if unlit
+    area: NDArray[np.float64]
 
 
 def gather_patches(

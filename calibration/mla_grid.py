@@ -495,7 +495,6 @@ def _fit(
         prm,
         last.i - di,
         last.j - dj,
-        last.m,
         last,
         lens_pitch_px,
         pp,
@@ -523,7 +522,6 @@ def _result(
     prm: CentroidParams,
     ii: NDArray[np.int64],
     jj: NDArray[np.int64],
-    m: MeasuredCentres,
     last: _Round,
     lens_pitch_px: float,
     pp: tuple[float, float],
@@ -533,9 +531,9 @@ def _result(
     scale = image_grid.pitch_px / lens_pitch_px
     scaled = image_grid.scaled_about(pp, 1.0 / scale)
     lens_grid = LensGrid(scaled.origin_px, float(lens_pitch_px), image_grid.rotation_rad)
+    m, dead, keep = last.m, last.dead, last.keep
     px, py = lat.centre(ii, jj)
     rx, ry = m.x - px, m.y - py
-    dead, keep = last.dead, last.keep
     status = np.full(ii.size, STATUS_OUTLIER, dtype=np.int8)
     status[last.vignetted] = STATUS_VIGNETTED
     status[dead] = STATUS_DEAD

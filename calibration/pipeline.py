@@ -130,11 +130,8 @@ class FrameAnalyzer:
             options = dataclasses.replace(options, corner=corner)
         flat_field = shading.flat_field(grid.background)
         if flat_field is not None:
-            # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting)
-            corner = dataclasses.replace(options.corner, flat_field=flat_field)
-            options = dataclasses.replace(options, corner=corner)
-        if flat_field is not None:
-            # vignetted micro-images: only the pixels that see the whole microlens aperture
+            # edge profiles flat-fielded by the micro-images' bowl (rims, vignetting); in
+            # vignetted micro-images only the pixels that see the whole microlens aperture
             mask = full_aperture_mask(
                 white,
                 grid.image_grid,
@@ -144,9 +141,8 @@ class FrameAnalyzer:
                 principal_point_px=grid.principal_point_px,
                 onset_px=grid.vignetting_onset_px,
             )
-            if mask is not None:
-                corner = dataclasses.replace(options.corner, aperture_mask=mask)
-                options = dataclasses.replace(options, corner=corner)
+            corner = dataclasses.replace(options.corner, flat_field=flat_field, aperture_mask=mask)
+            options = dataclasses.replace(options, corner=corner)
         grid = dataclasses.replace(grid, shading=shading, white_clipped_fraction=clipped)
         return cls(geometry, grid, options)
 

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from bench.mcsim.presets import PRESETS
 from bench.mcsim.render import WHITE, frame_rng, white_signal
 from bench.mcsim.spec import build_spec
-from calibration.aperture_mask import full_aperture_mask
+from calibration.aperture_mask import ApertureMask, full_aperture_mask
 from calibration.mla_grid import STATUS_VIGNETTED, fit_mla_grid
 from calibration.shading import measure_shading
 from calibration.vignetting import AREA_TOLERANCE, area_deficit, vignetting_onset
@@ -138,41 +138,39 @@ def test_the_shading_is_measured_inside_the_onset() -> None:
     assert c == pytest.approx(c_ref, rel=0.3, abs=2e-6)
 
 
+def _mask(
+    white: NDArray[np.float64], grid: Any, *, onset_px: float | None = None
+) -> tuple[ApertureMask | None, float]:
+    """The pipeline's steps: the shading inside the grid's onset, then the aperture mask of
+    the micro-images beyond ``onset_px`` (default the grid's); and the plateau's radius."""
+    shading = measure_shading(
+        white,
+        grid.image_grid,
+        lens_grid=grid.lens_grid,
+        unvignetted=(CAMERA["pp"], grid.vignetting_onset_px),
+    )
+    flat = shading.flat_field(0.0)
+    assert flat is not None
+    plateau_px = shading.plateau_fraction * 0.5 * grid.image_pitch_px
+    mask = full_aperture_mask(
+        white,
+        grid.image_grid,
+        grid.lens_grid,
+        flat,
+        plateau_px=plateau_px,
+        principal_point_px=CAMERA["pp"],
+        onset_px=grid.vignetting_onset_px if onset_px is None else onset_px,
+    )
+    return mask, plateau_px
+
+
 @pytest.mark.parametrize("kind", ["rear", "front"])
 def test_the_mask_keeps_the_pixels_that_see_the_whole_aperture(kind: str) -> None:
     vignetted = _grid(kind)
     white, cam = _white(kind)
-    shading = measure_shading(
-        white,
-        vignetted.image_grid,
-        lens_grid=vignetted.lens_grid,
-        unvignetted=(CAMERA["pp"], vignetted.vignetting_onset_px),
-    )
-    flat = shading.flat_field(0.0)
-    assert flat is not None
-    plateau_px = shading.plateau_fraction * 0.5 * vignetted.image_pitch_px
-    mask = full_aperture_mask(
-        white,
-        vignetted.image_grid,
-        vignetted.lens_grid,
-        flat,
-        plateau_px=plateau_px,
-        principal_point_px=CAMERA["pp"],
-        onset_px=vignetted.vignetting_onset_px,
-    )
+    mask, plateau_px = _mask(white, vignetted)
     assert mask is not None and mask.micro_images > 30
-    assert (
-        full_aperture_mask(
-            white,
-            vignetted.image_grid,
-            vignetted.lens_grid,
-            flat,
-            plateau_px=plateau_px,
-            principal_point_px=CAMERA["pp"],
-            onset_px=math.inf,
-        )
-        is None
-    )
+    assert _mask(white, vignetted, onset_px=math.inf)[0] is None
     # the truth: a pixel sees its whole aperture where the stop passes all its rays; the
     # renderer without the stop (same seed, no noise) against with it
     spec_kw = {"rays": 4, "white_rays": 64, "subpixel": 2, "seed": 3}
@@ -220,25 +218,9 @@ def test_a_micro_image_the_vignetting_darkens_whole_keeps_no_pixel() -> None:
     far = int(np.argmax(np.hypot(cx - CAMERA["pp"][0], cy - CAMERA["pp"][1])))
     x, y = round(float(cx[far])), round(float(cy[far]))
     white[y - 26 : y + 27, x - 26 : x + 27] = 0.0
-    shading = measure_shading(
-        white,
-        vignetted.image_grid,
-        lens_grid=vignetted.lens_grid,
-        unvignetted=(CAMERA["pp"], vignetted.vignetting_onset_px),
-    )
-    flat = shading.flat_field(0.0)
-    assert flat is not None
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        mask = full_aperture_mask(
-            white,
-            vignetted.image_grid,
-            vignetted.lens_grid,
-            flat,
-            plateau_px=shading.plateau_fraction * 0.5 * vignetted.image_pitch_px,
-            principal_point_px=CAMERA["pp"],
-            onset_px=vignetted.vignetting_onset_px,
-        )
+        mask, _ = _mask(white, vignetted)
     assert mask is not None
     assert not mask.full[y - 5 : y + 6, x - 5 : x + 6].any()
     assert 0.002 <= mask.tolerance < 0.02
