@@ -185,6 +185,7 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
         "jackknife_consistent": d.jackknife_consistent,
         "aperture_scale": d.kappa,
         "aperture_shape_box": d.shape_box,
+        "diffraction_px": d.diffraction_px,
         "chi2_reduced": d.chi2_reduced,
         "static_blur_rms_px": d.static_rms_px,
         "max_defocus_px": d.max_blur_px,
@@ -202,7 +203,9 @@ def _defocus_or_raise(
 ) -> DefocusFit:
     """The whole-sweep defocus fit (from ``start``'s parameters when given);
     :class:`FocusNotDeterminedError` with ``partial`` (``hint`` appended to its message)."""
-    theta0 = None if start is None else (start.Q0, start.kappa, start.shape_box)
+    theta0 = (
+        None if start is None else (start.Q0, start.kappa, start.shape_box, start.diffraction_px)
+    )
     try:
         defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px, start=theta0)
     except DefocusNotDetermined as exc:

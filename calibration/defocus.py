@@ -93,6 +93,10 @@ write. (Since the corners' rim samples are left out of their fits, 2026-12-05, t
 over the coverage sweeps are 0.0001-0.0032 px; the constant is kept at the largest
 measured.)"""
 
+WAVE_SELECT_CHI2 = 9.0
+"""The chi-square the wave-optical defocus kernel (one parameter more, the diffraction scale)
+must gain over the geometric one to be taken (:func:`fit_defocus`): three sigma."""
+
 ROBUST_ROUNDS = 2
 """Rounds of re-weighting each observation by its own reduced chi-square (see
 :meth:`DefocusProblem.downweight`)."""
@@ -131,6 +135,9 @@ class DefocusFit:
     Q0_se_systematic: float
     kappa: float
     shape_box: float
+    diffraction_px: float
+    """The microlens's diffraction scale ``s = λN/δ`` (px) the wave-optical defocus kernel
+    fitted (:mod:`calibration.wave_defocus`); 0: geometric optics describes the edges."""
     chi2_reduced: float
     static_kernel_px: NDArray[np.float64]
     static_weights: NDArray[np.float64]
@@ -176,11 +183,11 @@ def fit_defocus(
     *,
     lens_pitch_px: float,
     min_blur_px: float = 0.4,
-    start: tuple[float, float, float] | None = None,
+    start: tuple[float, float, float, float] | None = None,
 ) -> DefocusFit:
     """Fit ``Q0`` (and the static kernel) to the edge-spread functions of a sweep.
 
-    ``lens_pitch_px`` is ``D/δ``; ``start`` an earlier fit's ``(Q0, κ, α)`` to start
+    ``lens_pitch_px`` is ``D/δ``; ``start`` an earlier fit's ``(Q0, κ, α, s)`` to start
     from instead of the coarse scan (a refit on a refined ``Q(u)``). Raises
     :class:`DefocusNotDetermined` when fewer than 5 frames have edge-spread functions, or when the model's
     defocus never exceeds ``min_blur_px`` pixels anywhere in the sweep (the
@@ -205,13 +212,18 @@ def fit_defocus(
         start_q = float(prob.q[np.nanargmin(spreads)]) if np.isfinite(spreads).any() else q_lo
         candidates = np.concatenate([np.linspace(q_lo, q_hi, 6), [start_q]])
         costs = [
-            float(np.sum(prob.residuals(np.array([c, 1.0, 0.5]), rows) ** 2)) for c in candidates
+            float(np.sum(prob.residuals(np.array([c, 1.0, 0.5, 0.0]), rows) ** 2))
+            for c in candidates
         ]
-        theta0 = np.array([float(candidates[int(np.argmin(costs))]), 1.0, 0.5])
-    theta, cov, robust, chi2 = prob.fit(theta0, rows, q_bounds)
-    for _ in range(ROBUST_ROUNDS):
-        prob.downweight(theta, rows)
-        theta, cov, robust, chi2 = prob.fit(theta, rows, q_bounds)
+        theta0 = np.array([float(candidates[int(np.argmin(costs))]), 1.0, 0.5, 0.0])
+    # geometric optics first (from a start with diffraction, its geometric part): whether the
+    # edges widen measurably at all (the wave kernel alone could put Q0 anywhere when they do
+    # not, its diffraction hiding a defocus within the depth of focus)
+    geometric = np.concatenate([theta0[:3], [0.0]])
+    optics = _robust_fit(prob, geometric, rows, q_bounds, diffraction=False)
+    _check_blur(optics[0], prob, lens_pitch_px, min_blur_px)
+    wave = _wave_fit(prob, optics, rows, q_bounds, start_scale=float(theta0[3]))
+    theta, cov, robust, chi2 = wave if wave is not None else optics
     se_curv = float(np.sqrt(max(cov[0, 0], 0.0)))
     se_cluster = float(np.sqrt(max(robust[0, 0], 0.0)))
     q0_systematic = DIAMETER_SYSTEMATIC_PX / (diameter_factor(theta[1], theta[2]) * lens_pitch_px)
@@ -247,6 +259,7 @@ def fit_defocus(
         Q0_se_systematic=q0_systematic,
         kappa=float(theta[1]),
         shape_box=float(theta[2]),
+        diffraction_px=float(theta[3]),
         chi2_reduced=chi2,
         static_kernel_px=np.asarray(prob.grid, dtype=np.float64),
         static_weights=s,
@@ -260,13 +273,80 @@ def fit_defocus(
             int(f): float(sc) for f, sc in zip(prob.frame, prob.noise_scale, strict=True)
         },
     )
-    if result.max_blur_px < min_blur_px:
+    _check_blur(theta, prob, lens_pitch_px, min_blur_px)
+    return result
+
+
+def _robust_fit(
+    prob: DefocusProblem,
+    theta0: NDArray[np.float64],
+    rows: NDArray[np.int64],
+    q_bounds: tuple[float, float],
+    *,
+    diffraction: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+    """The fit from ``theta0``, then ``ROBUST_ROUNDS`` of re-weighting each frame by its own
+    reduced chi-square and fitting again (the problem keeps the last weights)."""
+    fitted = prob.fit(theta0, rows, q_bounds, diffraction=diffraction)
+    for _ in range(ROBUST_ROUNDS):
+        prob.downweight(fitted[0], rows)
+        fitted = prob.fit(fitted[0], rows, q_bounds, diffraction=diffraction)
+    return fitted
+
+
+def _wave_fit(
+    prob: DefocusProblem,
+    geometric: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float],
+    rows: NDArray[np.int64],
+    q_bounds: tuple[float, float],
+    *,
+    start_scale: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None:
+    """The fit with the microlens's diffraction (:mod:`calibration.wave_defocus`), when it
+    describes the edges better than geometric optics; None (and the problem's weights as
+    the geometric fit left them) when it does not.
+
+    It starts from the geometric fit's ``Q0`` and a full aperture with the diffraction scale
+    ``s`` that fits best of a few (``start_scale``, an earlier fit's, among them), from f/4
+    to f/20 in green light (geometric optics fitted ``κ`` to make up for the diffraction it
+    does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
+    (the geometric fit's frame weights), it lowers the chi-square by more than
+    ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and then re-weighted as the
+    geometric fit was."""
+    theta_g = geometric[0]
+    scales = np.unique(np.array([1.0, 2.0, 3.0, 4.5, max(start_scale, 1.0)]))
+    trials = [np.array([theta_g[0], 1.0, 0.5, sc]) for sc in scales]
+    costs = [float(np.sum(prob.residuals(t, rows) ** 2)) for t in trials]
+    trial = prob.fit(trials[int(np.argmin(costs))], rows, q_bounds, diffraction=True)
+    gain = float(
+        np.sum(prob.residuals(theta_g, rows) ** 2) - np.sum(prob.residuals(trial[0], rows) ** 2)
+    )
+    if not (trial[0][3] > 0.0 and gain > WAVE_SELECT_CHI2):
+        return None
+    kept_scale = prob.noise_scale.copy()
+    wave = trial
+    for _ in range(ROBUST_ROUNDS):
+        prob.downweight(wave[0], rows)
+        wave = prob.fit(wave[0], rows, q_bounds, diffraction=True)
+    if wave[0][3] > 0.0:
+        return wave
+    prob.scale_noise(kept_scale)
+    return None
+
+
+def _check_blur(
+    theta: NDArray[np.float64], prob: DefocusProblem, lens_pitch_px: float, min_blur_px: float
+) -> None:
+    """:class:`DefocusNotDetermined` when the geometric fit ``theta`` defocuses no frame by
+    more than ``min_blur_px`` pixels."""
+    factor = diameter_factor(theta[1], theta[2]) * lens_pitch_px
+    max_blur = float(np.max(factor * np.abs(prob.q - theta[0])))
+    if max_blur < min_blur_px:
         raise DefocusNotDetermined(
-            f"the defocus blur never exceeds {result.max_blur_px:.2f} px over the sweep "
+            f"the defocus blur never exceeds {max_blur:.2f} px over the sweep "
             f"(need {min_blur_px:.1f} px): the focus plane cannot be located; extend the "
             "sweep or use a faster main lens"
         )
-    return result
 
 
 def _usable(observations: Sequence[EdgeObservation]) -> list[EdgeObservation]:
@@ -316,14 +396,16 @@ def jackknife_defocus(
         return fit
     q = np.array([o.Q for o in obs])
     bounds = _q_bounds(q)
-    start = np.array([fit.Q0, fit.kappa, fit.shape_box])
+    start = np.array([fit.Q0, fit.kappa, fit.shape_box, fit.diffraction_px])
 
     full = DefocusProblem(obs, lens_pitch_px)
 
     def left_out(block: NDArray[np.int64]) -> tuple[float, float]:
         prob = full.without(block)
         prob.scale_noise(np.array([fit.frame_noise_scale.get(o.frame, 1.0) for o in prob.obs]))
-        theta, cov, robust, _ = prob.fit(start, np.arange(len(prob.obs)), bounds)
+        theta, cov, robust, _ = prob.fit(
+            start, np.arange(len(prob.obs)), bounds, diffraction=fit.diffraction_px > 0.0
+        )
         return float(theta[0]), float(np.sqrt(max(cov[0, 0], robust[0, 0], 0.0)))
 
     with ThreadPoolExecutor(JACKKNIFE_THREADS) as pool:

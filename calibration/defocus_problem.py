@@ -22,6 +22,7 @@ from scipy.optimize import least_squares, nnls
 
 from .cluster_robust import clustered_meat
 from .edge_spread import ESF_BIN_PX, BinnedEsf
+from .wave_defocus import DIFFRACTION_MAX_PX, WAVE_MIN_PX, defocus_integral_rest
 
 STATIC_STEP_PX = 0.05
 """Spacing of the static kernel's point masses (pixels)."""
@@ -203,14 +204,11 @@ class DefocusProblem:
         self.penalty = second.T @ second
         self.data_scale = float(np.mean(np.sum(self.w**2, axis=1)))
 
-    def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
-        """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``."""
-        q0, kappa, alpha = theta
-        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
+    def _geometric_rest(self, d: NDArray[np.float64], alpha: float) -> NDArray[np.float64]:
+        """``∫C - max(t, 0)`` on the lattice of the geometric aperture at diameters ``d``, each
+        observation's placement jitter averaged over (Gauss-Hermite, where not negligible)."""
         t = self.lattice[None, :]
         integral = _aperture_integral(t, d[:, None], alpha)
-        # the placement jitter of an observation: a Gauss-Hermite average over it (only where
-        # it is not negligible against the lattice)
         jittered = np.flatnonzero(self.jitter > JITTER_NEGLIGIBLE_PX)
         if jittered.size:
             dj = d[jittered, None]
@@ -220,12 +218,35 @@ class DefocusProblem:
                     t + node * self.jitter[jittered, None], dj, alpha
                 )
             integral[jittered] = smooth
+        integral -= np.maximum(t, 0.0)
+        return integral
+
+    def _wave_rest(self, d: NDArray[np.float64], alpha: float, s: float) -> NDArray[np.float64]:
+        """The same for the effective defocus kernel of diffraction scale ``s`` px
+        (:mod:`calibration.wave_defocus`; its jitter exactly, as a Gaussian factor)."""
+        jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
+        return defocus_integral_rest(self.lattice, d, s, alpha, jitter if jitter.any() else None)
+
+    def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``.
+
+        ``theta = (Q0, κ, α, s)``: the diffraction scale ``s`` (px) makes the defocus kernel
+        the wave-optical one (:mod:`calibration.wave_defocus`); 0 is geometric, and below
+        ``WAVE_MIN_PX`` the two are blended linearly."""
+        q0, kappa, alpha, s = theta
+        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
+        if s >= WAVE_MIN_PX:
+            integral = self._wave_rest(d, alpha, float(s))
+        else:
+            integral = self._geometric_rest(d, alpha)
+            if s > 0.0:
+                share = float(s) / WAVE_MIN_PX
+                integral = (1.0 - share) * integral + share * self._wave_rest(d, alpha, WAVE_MIN_PX)
         # linear interpolation on the lattice from its values and forward differences, of the
         # part beyond the ramp (bounded: float32 keeps ~1e-8 of it where ∫C itself reaches
         # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
-        integral -= np.maximum(t, 0.0)
         flat = integral.ravel().astype(np.float32)
         step = np.zeros_like(flat)
         np.subtract(flat[1:], flat[:-1], out=step[:-1])
@@ -333,45 +354,57 @@ class DefocusProblem:
         theta0: NDArray[np.float64],
         rows: NDArray[np.int64],
         q_bounds: tuple[float, float],
+        *,
+        diffraction: bool = True,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-        """Least squares over ``(Q0, κ, α)``.
+        """Least squares over ``(Q0, κ, α, s)`` (``diffraction`` False: ``s`` held at 0,
+        geometric optics).
 
         Returns ``theta``, its covariance from the curvature (scaled by the
         reduced chi² when above 1), its cluster-robust (sandwich) covariance
         with the frames as clusters, and the reduced chi².
         """
-        lower = [q_bounds[0], 0.2, 0.0]
-        upper = [q_bounds[1], KAPPA_MAX, 1.0]
+        n_fit = 4 if diffraction else 3
+        lower = np.array([q_bounds[0], 0.2, 0.0, 0.0])[:n_fit]
+        upper = np.array([q_bounds[1], KAPPA_MAX, 1.0, DIFFRACTION_MAX_PX])[:n_fit]
+        held = np.zeros(4 - n_fit)
+
+        def residuals(t: NDArray[np.float64]) -> NDArray[np.float64]:
+            return self.residuals(np.concatenate([t, held]), rows)
+
         fit = least_squares(
-            lambda t: self.residuals(t, rows),
-            np.clip(theta0, np.array(lower) + 1e-9, np.array(upper) - 1e-9),
+            residuals,
+            np.clip(np.asarray(theta0, dtype=np.float64)[:n_fit], lower + 1e-9, upper - 1e-9),
             bounds=(lower, upper),
-            x_scale=[1e-4, 0.05, 0.1],
-            diff_step=[1e-6, 1e-4, 1e-3],
+            x_scale=[1e-4, 0.05, 0.1, 0.2][:n_fit],
+            diff_step=[1e-6, 1e-4, 1e-3, 1e-3][:n_fit],
             ftol=1e-6,
             xtol=1e-6,
         )
+        fit.x = np.concatenate([fit.x, held])
         self.nfev = fit.nfev
-        n_params = 3 + self.grid.size + 2 * rows.size
+        n_params = n_fit + self.grid.size + 2 * rows.size
         dof = max(1, int(np.count_nonzero(self.w[rows])) - n_params)
         chi2 = float(np.sum(fit.fun**2) / dof)
         # a shape or scale parameter held at its bound (a round aperture's α = 0, a full
         # square's κ = 1) is fixed there: its Jacobian column is not a derivative (zero on
         # the bound) and it takes no part in the covariance; Q0 always does
-        free = np.asarray(fit.active_mask) == 0
-        free[0] = True
-        jac = fit.jac[:, free]
+        fitted_free = np.asarray(fit.active_mask) == 0
+        fitted_free[0] = True
+        jac = fit.jac[:, fitted_free]
+        free = np.concatenate([fitted_free, np.zeros(4 - n_fit, dtype=bool)])
+        n_theta = fit.x.size
         try:
             bread_free = np.linalg.inv(jac.T @ jac)
         except np.linalg.LinAlgError:
-            inf = np.full((3, 3), np.inf)
+            inf = np.full((n_theta, n_theta), np.inf)
             return fit.x, inf, inf, chi2
         # sandwich: the residuals of one frame share its normalisation and noise
         n_bins = self.w.shape[1]
         score = (jac * fit.fun[:, None]).reshape(rows.size, n_bins, jac.shape[1]).sum(axis=1)
         frames = self.frame[rows]
         meat = clustered_meat(score, np.unique(frames, return_inverse=True)[1], parameters_lost=1)
-        bread, robust = np.zeros((3, 3)), np.zeros((3, 3))
+        bread, robust = np.zeros((n_theta, n_theta)), np.zeros((n_theta, n_theta))
         bread[np.ix_(free, free)] = bread_free
         robust[np.ix_(free, free)] = bread_free @ meat @ bread_free
         return fit.x, bread * max(chi2, 1.0), robust, chi2

@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from edge_shapes import sinc2_cdf
+from edge_shapes import fresnel_edge, sinc2_cdf
 from scipy.special import ndtr
 
 from calibration.defocus import DefocusNotDetermined, EdgeObservation, fit_defocus
@@ -196,6 +196,44 @@ def test_a_diffraction_limited_static_blur_with_long_tails_gives_q0() -> None:
     fit = fit_defocus(_exact_sweep(qs, pitch_px=80.0, q0=q0, **shape), lens_pitch_px=80.0)
     assert fit.Q0 == pytest.approx(q0, rel=1e-4)
     assert fit.kappa == pytest.approx(1.0, abs=0.01)
+    # the pattern convolved with the geometric blur (rays deflected by it) is geometric
+    # optics with a static pattern: the wave-optical kernel is not taken
+    assert fit.diffraction_px == 0.0
+
+
+def _binned(curve, q: float) -> BinnedEsf:
+    """A noise-free 0.1 px binned function: each bin the exact average over its interval."""
+    centres = np.arange(-5.95, 6.0, 0.1)
+    sub = (np.arange(20) + 0.5) / 20 * 0.1 - 0.05
+    value = curve((centres[:, None] + sub[None, :]).ravel()).reshape(centres.size, -1).mean(1)
+    return BinnedEsf(centres, value, np.full(centres.size, 1e-4), np.full(centres.size, 40), 200)
+
+
+@pytest.mark.parametrize(
+    ("s_px", "arm"), [(2.64, "near"), (1.0, "near"), (2.64, "symmetric")], ids=str
+)
+def test_wave_optical_edges_give_q0_and_the_diffraction_scale(s_px: float, arm: str) -> None:
+    """Light, not rays: the paper's camera (100 px lenses, f/12, 2.5 µm pixels: the pattern's
+    first zero λN = 2.64 px in green light; 1.0 px as at f/4.5) stays within its microlenses'
+    diffraction-limited depth of focus over the whole sweep, where a defocus moves light from
+    the pattern's core into its rings instead of widening it. Geometric optics convolved with
+    the pattern fitted these exact Fresnel edges with κ 0.43-0.67 and put Q0 +0.36 % (2.64 px)
+    and +0.72 % (1.0 px) off on a sweep whose focus plane is 8 mm from its near end (−0.015 %
+    on a symmetric one). The wave-optical kernel recovers Q0, a full aperture and the
+    pattern's scale."""
+    q0 = 0.2
+    qs = q0 + (
+        np.linspace(-0.0020, 0.0230, 40) if arm == "near" else np.linspace(-0.0093, 0.0155, 40)
+    )
+    obs = [
+        EdgeObservation(k, "standard", float(q), _binned(fresnel_edge(100.0 * (q - q0), s_px), q))
+        for k, q in enumerate(qs)
+    ]
+    fit = fit_defocus(obs, lens_pitch_px=100.0)
+    assert fit.Q0 == pytest.approx(q0, rel=1e-4)
+    assert fit.diffraction_px == pytest.approx(s_px, rel=0.03)
+    assert fit.kappa == pytest.approx(1.0, abs=0.03)
+    assert aperture_scale_warning(fit.kappa) is None
 
 
 def test_diffraction_limited_profiles_through_the_levels_give_q0() -> None:
@@ -233,7 +271,7 @@ def test_round_lenses_keep_a_finite_uncertainty_wherever_the_shape_ends(seed: in
     with a wrong data sheet, whose focal length then fell back to the data sheet and whose
     focus plane came out 46 mm off.)"""
     obs = _sweep(seed, aperture="round", static="gauss", sigma_px=0.7)
-    fit = fit_defocus(obs, lens_pitch_px=LENS_PITCH_PX, start=(Q0, 0.866, 0.0))
+    fit = fit_defocus(obs, lens_pitch_px=LENS_PITCH_PX, start=(Q0, 0.866, 0.0, 0.0))
     assert fit.kappa == pytest.approx(np.sqrt(12) / 4, rel=0.05)
     assert np.isfinite(fit.Q0_se_curvature) and 0 < fit.Q0_se_curvature < 2e-4
     assert abs(fit.Q0 - Q0) <= 3 * fit.Q0_se

@@ -117,7 +117,7 @@ def test_a_block_left_out_is_the_problem_built_without_it() -> None:
     assert_array_equal(sub.noise_scale, scales[keep])
     sub.scale_noise(np.ones(keep.size))
     rows = np.arange(keep.size)
-    for theta in ([Q0, 0.9, 0.5], [Q0 + 0.002, 0.6, 0.0], [Q0 - 0.003, 1.0, 1.0]):
+    for theta in ([Q0, 0.9, 0.5, 0.0], [Q0 + 0.002, 0.6, 0.0, 0.3], [Q0 - 0.003, 1.0, 1.0, 2.5]):
         t = np.array(theta)
         assert_array_equal(sub.residuals(t, rows), built.residuals(t, rows))
     assert sub.data_scale == built.data_scale
