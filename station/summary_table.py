@@ -149,11 +149,17 @@ def summary_table(result: dict[str, Any], truth: dict[str, Any] | None = None) -
     focus = result.get("focus") or {}
     model = focus.get("defocus_model") or {}
     if model:
+        diffraction = model.get("diffraction_px") or 0.0
+        optics = (
+            f", wave optics: diffraction pattern {_fmt(diffraction, 2)} px"
+            if diffraction > 0.0
+            else ""
+        )
         lines.append(
             f"focus: Q0 = {_fmt(model.get('Q0'), 6)} ± {_fmt(model.get('Q0_se'), 6)} from the "
             f"defocus of {model.get('frames')} frames (largest defocus "
             f"{_fmt(model.get('max_defocus_px'), 2)} px, static blur RMS "
-            f"{_fmt(model.get('static_blur_rms_px'), 2)} px)"
+            f"{_fmt(model.get('static_blur_rms_px'), 2)} px{optics})"
         )
     camera = result.get("camera_model") or {}
     check = camera.get("image_scale") or {}
