@@ -300,9 +300,21 @@ def _robust_fit(
     *,
     diffraction: bool,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-    """The fit from ``theta0``, then ``ROBUST_ROUNDS`` of re-weighting each frame by its own
-    reduced chi-square and fitting again (the problem keeps the last weights)."""
+    """The fit from ``theta0``, then re-weighted (:func:`_reweighted`)."""
     fitted = prob.fit(theta0, rows, q_bounds, diffraction=diffraction)
+    return _reweighted(prob, fitted, rows, q_bounds, diffraction=diffraction)
+
+
+def _reweighted(
+    prob: DefocusProblem,
+    fitted: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float],
+    rows: NDArray[np.int64],
+    q_bounds: tuple[float, float],
+    *,
+    diffraction: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+    """``ROBUST_ROUNDS`` of re-weighting each frame by its own reduced chi-square at the
+    last fit and fitting again (the problem keeps the last weights)."""
     for _ in range(ROBUST_ROUNDS):
         prob.downweight(fitted[0], rows)
         fitted = prob.fit(fitted[0], rows, q_bounds, diffraction=diffraction)
@@ -324,8 +336,8 @@ def _wave_fit(
     It starts from the geometric fit's ``Q0`` and a full square or round aperture with the
     diffraction scale ``s`` that fits best of a few (``start_scale``, an earlier fit's, among
     them), from f/4 to f/20 in green light, when that start costs less than
-    ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make up for the diffraction it
-    does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
+    ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make
+    up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
     (the geometric fit's frame weights), it lowers the chi-square by more than
     ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and then re-weighted as the
     geometric fit was."""
@@ -341,10 +353,7 @@ def _wave_fit(
     if not (trial[0][3] > 0.0 and gain > WAVE_SELECT_CHI2):
         return None
     kept_scale = prob.noise_scale.copy()
-    wave = trial
-    for _ in range(ROBUST_ROUNDS):
-        prob.downweight(wave[0], rows)
-        wave = prob.fit(wave[0], rows, q_bounds, diffraction=True)
+    wave = _reweighted(prob, trial, rows, q_bounds, diffraction=True)
     if wave[0][3] > 0.0:
         return wave
     prob.scale_noise(kept_scale)

@@ -22,7 +22,12 @@ from scipy.optimize import least_squares, nnls
 
 from .cluster_robust import clustered_meat
 from .edge_spread import ESF_BIN_PX, BinnedEsf
-from .wave_defocus import DIFFRACTION_MAX_PX, WAVE_MIN_PX, defocus_integral_rest
+from .wave_defocus import (
+    DIFFRACTION_MAX_PX,
+    WAVE_MIN_PX,
+    defocus_integral_rest,
+    jittered_ramp_rest,
+)
 
 STATIC_STEP_PX = 0.05
 """Spacing of the static kernel's point masses (pixels)."""
@@ -168,6 +173,7 @@ class DefocusProblem:
         self.noise_scale = np.ones(n)  # each observation's errors are scaled by this
         self.xbar = xbar
         self._extra = np.zeros_like(xbar)
+        self._ramp_rest: NDArray[np.float64] | None = None  # the wave kernel's jittered ramp
         self.q = np.array([o.Q for o in self.obs])
         self.jitter = np.array([o.esf.jitter_px for o in self.obs])
         self.frame = np.array([o.frame for o in self.obs])
@@ -225,7 +231,11 @@ class DefocusProblem:
         """The same for the effective defocus kernel of diffraction scale ``s`` px
         (:mod:`calibration.wave_defocus`; its jitter exactly, as a Gaussian factor)."""
         jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
-        return defocus_integral_rest(self.lattice, d, s, alpha, jitter if jitter.any() else None)
+        if not jitter.any():
+            return defocus_integral_rest(self.lattice, d, s, alpha)
+        if self._ramp_rest is None:  # the same at every evaluation
+            self._ramp_rest = jittered_ramp_rest(self.lattice, jitter)
+        return defocus_integral_rest(self.lattice, d, s, alpha, jitter) + self._ramp_rest
 
     def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
         """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``.
@@ -271,6 +281,7 @@ class DefocusProblem:
         for name in names:
             setattr(sub, name, getattr(self, name)[keep])
         sub._extra = np.zeros_like(sub.xbar)
+        sub._ramp_rest = None if self._ramp_rest is None else self._ramp_rest[keep]
         # lattice rows renumbered: row k of the kept ones starts at k·n_lattice
         shift = ((keep - np.arange(keep.size)) * self.n_lattice)[:, None]
         sub.index = [(j.reshape(self.shape[0], -1)[keep] - shift).ravel() for j in self.index]

@@ -26,6 +26,8 @@ by a cosine transform over ``0 ≤ f < 1/s``.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
@@ -78,20 +80,18 @@ def defocus_integral_rest(
     alpha: float,
     jitter: NDArray[np.floating] | None = None,
 ) -> NDArray[np.float64]:
-    """``∫C_K − max(t, 0)`` at ``t`` (px) for each diameter in ``d`` (px): one row each.
+    """``∫C_K − ∫C_δ`` at ``t`` (px) for each diameter in ``d`` (px): one row each.
 
     ``K`` is the effective defocus kernel of diffraction scale ``s ≥ WAVE_MIN_PX`` (module
     docstring); ``C_K`` its cumulative line spread; ``jitter`` (px, one per row, or None)
-    a Gaussian placement spread the row's kernel is convolved with. The result is bounded
-    (it vanishes far from the edge without jitter) and even in ``t``.
+    a Gaussian placement spread the row's kernel is convolved with. ``∫C_δ`` is the point
+    part's, the ramp under the same jitter: :func:`jittered_ramp_rest` adds what that ramp
+    differs from ``max(t, 0)`` by. The result is bounded and even in ``t``.
     """
     t = np.asarray(t, dtype=np.float64)
     d = np.asarray(d, dtype=np.float64)
-    extent = float(np.max(np.abs(t))) + 1.0
-    cutoff = 1.0 / s
-    n_freq = max(32, int(np.ceil(8.0 * extent * cutoff)))
-    df = cutoff / n_freq
-    f = (np.arange(n_freq) + 0.5) * df
+    f, cosines = _frequencies_and_cosines(float(s), t.tobytes())
+    df = 2.0 * f[0]
     focused = line_spread_transfer(f[None, :], np.zeros((1, 1)), s, alpha)
     # where the pattern passes nothing (a round aperture's rows all narrower than f·s at the
     # sampled chords) K is a point, as beyond the cut-off
@@ -105,12 +105,34 @@ def defocus_integral_rest(
     h = (1.0 - ratio) / (4.0 * np.pi**2 * f[None, :] ** 2)
     if jitter is not None:
         h = h * np.exp(-2.0 * np.pi**2 * f[None, :] ** 2 * np.asarray(jitter)[:, None] ** 2)
-    cosines = np.cos(2.0 * np.pi * f[:, None] * t[None, :])
-    rest = (2.0 * df) * (h @ cosines)
-    if jitter is not None:
-        # the point part of K, the ramp, under the jitter: E[max(t + σZ, 0)] - max(t, 0)
-        sigma = np.maximum(np.asarray(jitter, dtype=np.float64)[:, None], 1e-12)
-        z = t[None, :] / sigma
-        smooth = t[None, :] * ndtr(z) + sigma * np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi)
-        rest = rest + smooth - np.maximum(t[None, :], 0.0)
-    return np.asarray(rest, dtype=np.float64)
+    return np.asarray((2.0 * df) * (h @ cosines), dtype=np.float64)
+
+
+def jittered_ramp_rest(
+    t: NDArray[np.floating], jitter: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """``E[max(t + σZ, 0)] − max(t, 0)`` at ``t`` (px) for each ``σ`` in ``jitter`` (px, one
+    row each; 0 where ``σ`` is 0): the ramp of a point kernel under the placement jitter."""
+    t = np.asarray(t, dtype=np.float64)[None, :]
+    sigma = np.maximum(np.asarray(jitter, dtype=np.float64)[:, None], 1e-12)
+    z = t / sigma
+    smooth = t * ndtr(z) + sigma * np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi)
+    return np.asarray(smooth - np.maximum(t, 0.0), dtype=np.float64)
+
+
+@lru_cache(maxsize=4)
+def _frequencies_and_cosines(
+    s: float, t_bytes: bytes
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The cosine transform's frequencies below the cut-off ``1/s`` (midpoints, 8 a cycle of
+    the widest ``t``) and ``cos(2πft)`` at ``t`` (float64 bytes): the same for every
+    evaluation at one ``s`` (a fit's Jacobian varies the other parameters)."""
+    t = np.frombuffer(t_bytes, dtype=np.float64)
+    extent = float(np.max(np.abs(t))) + 1.0
+    cutoff = 1.0 / s
+    n_freq = max(32, int(np.ceil(8.0 * extent * cutoff)))
+    f = (np.arange(n_freq, dtype=np.float64) + 0.5) * (cutoff / n_freq)
+    cosines = np.asarray(np.cos(2.0 * np.pi * f[:, None] * t[None, :]), dtype=np.float64)
+    f.flags.writeable = False
+    cosines.flags.writeable = False
+    return f, cosines

@@ -201,7 +201,7 @@ def test_a_diffraction_limited_static_blur_with_long_tails_gives_q0() -> None:
     assert fit.diffraction_px == 0.0
 
 
-def _binned(curve, q: float) -> BinnedEsf:
+def _binned(curve) -> BinnedEsf:
     """A noise-free 0.1 px binned function: each bin the exact average over its interval."""
     centres = np.arange(-5.95, 6.0, 0.1)
     sub = (np.arange(20) + 0.5) / 20 * 0.1 - 0.05
@@ -226,7 +226,7 @@ def test_wave_optical_edges_give_q0_and_the_diffraction_scale(s_px: float, arm: 
         np.linspace(-0.0020, 0.0230, 40) if arm == "near" else np.linspace(-0.0093, 0.0155, 40)
     )
     obs = [
-        EdgeObservation(k, "standard", float(q), _binned(fresnel_edge(100.0 * (q - q0), s_px), q))
+        EdgeObservation(k, "standard", float(q), _binned(fresnel_edge(100.0 * (q - q0), s_px)))
         for k, q in enumerate(qs)
     ]
     fit = fit_defocus(obs, lens_pitch_px=100.0)
