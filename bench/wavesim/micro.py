@@ -106,6 +106,6 @@ def micro_image(
     ty = y0 - 0.5 + (np.arange(grid.box_y * sub) + 0.5) / sub
     sx = ((tx - cx) * pix)[None, :]
     sy = ((ty - cy) * pix)[:, None]
-    weight = transmission(camera, sx, sy, np.float64(mx), np.float64(my), grid.pupil_rows)
+    weight = transmission(camera, sx, sy, mx, my, grid.pupil_rows)
     pixels = (cells * weight).reshape(grid.box_y, sub, grid.box_x, sub).mean(axis=(1, 3))
     return pixels[ys - y0, xs - x0]

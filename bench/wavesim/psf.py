@@ -116,8 +116,6 @@ def fine_psf(
     return FinePsf(intensity / intensity.sum(), spacing_mm, step)
 
 
-
-
 def line_psf(
     pitch_mm: float,
     wavelength_mm: float,
@@ -144,7 +142,9 @@ def line_psf(
     cover = np.clip(np.minimum(xi + step / 2, half) - np.maximum(xi - step / 2, -half), 0, None)
     field = np.zeros(size, dtype=np.complex128)
     c = size // 2
-    field[c - m : c + m + 1] = cover / step * np.exp(1j * np.pi * defocus_per_mm / wavelength_mm * xi**2)
+    field[c - m : c + m + 1] = (
+        cover / step * np.exp(1j * np.pi * defocus_per_mm / wavelength_mm * xi**2)
+    )
     spectrum = scipy.fft.fft(scipy.fft.ifftshift(field))
     intensity = scipy.fft.fftshift(spectrum.real**2 + spectrum.imag**2)
     return intensity / intensity.sum()

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from bench.mcsim.camera import Camera
 from bench.mcsim.render import WHITE, frame_rng
 from bench.mcsim.sensor import expose
 from bench.mcsim.windows import corner_windows, lens_pixels
@@ -74,21 +75,13 @@ def frame_signal(ws: WaveSpec, index: int) -> tuple[npt.NDArray[np.float32], Wav
     pairs = {(int(i), int(j)) for w in windows for i, j in zip(w.lens_i, w.lens_j, strict=True)}
     lens_i = np.array([p[0] for p in sorted(pairs)], dtype=np.int64)
     lens_j = np.array([p[1] for p in sorted(pairs)], dtype=np.int64)
-    xs, ys = lens_pixels(cam, lens_i, lens_j)
-    signal = np.zeros((cam.height, cam.width), dtype=np.float32)
-    kernel, k_px = kernel_for(ws, u)
-    groups = _group_by_lens(cam, xs, ys)
-    box_x = max((int(gx.max() - gx.min()) + 1 for _, gx, _ in groups), default=1)
-    box_y = max((int(gy.max() - gy.min()) + 1 for _, _, gy in groups), default=1)
-    grid = micro_grid(kernel, box_x, box_y, ws.wave.oversample, ws.wave.pupil_rows)
-    for lens, gx, gy in groups:
-        signal[gy, gx] = micro_image(cam, spec.board, u, grid, lens, gx, gy)
+    signal, kernel, k_px = lenses_signal(ws, u, lens_i, lens_j)
     c = 1.0 / cam.a_mm(u) - 1.0 / cam.a_focus_mm
     stats = WaveStats(
         index=index,
         u_mm=u,
-        pixels=int(xs.size),
-        micro_images=len(groups),
+        pixels=int(lens_pixels(cam, lens_i, lens_j)[0].size),
+        micro_images=len(pairs),
         windows_inside_frame=all(w.inside_frame(cam) for w in windows),
         window_micro_images={w.corner: int(w.lens_i.size) for w in windows},
         kernel_half_px=k_px,
@@ -100,8 +93,29 @@ def frame_signal(ws: WaveSpec, index: int) -> tuple[npt.NDArray[np.float32], Wav
     return signal, stats
 
 
+def lenses_signal(
+    ws: WaveSpec, u_mm: float, lens_i: np.ndarray, lens_j: np.ndarray
+) -> tuple[npt.NDArray[np.float32], Kernel, int]:
+    """Signal of every pixel of the given lenses at object distance u (others 0).
+
+    Also returns the frame's kernel and its half-width K (px).
+    """
+    spec = ws.sweep
+    cam = spec.camera
+    xs, ys = lens_pixels(cam, lens_i, lens_j)
+    signal = np.zeros((cam.height, cam.width), dtype=np.float32)
+    kernel, k_px = kernel_for(ws, u_mm)
+    groups = _group_by_lens(cam, xs, ys)
+    box_x = max((int(gx.max() - gx.min()) + 1 for _, gx, _ in groups), default=1)
+    box_y = max((int(gy.max() - gy.min()) + 1 for _, _, gy in groups), default=1)
+    grid = micro_grid(kernel, box_x, box_y, ws.wave.oversample, ws.wave.pupil_rows)
+    for lens, gx, gy in groups:
+        signal[gy, gx] = micro_image(cam, spec.board, u_mm, grid, lens, gx, gy)
+    return signal, kernel, k_px
+
+
 def _group_by_lens(
-    cam, xs: np.ndarray, ys: np.ndarray
+    cam: Camera, xs: np.ndarray, ys: np.ndarray
 ) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
     """The pixels (xs, ys) split by owning lens (nearest micro-image centre)."""
     if xs.size == 0:
@@ -113,9 +127,7 @@ def _group_by_lens(
     key, xs, ys, pi, pj = key[order], xs[order], ys[order], pi[order], pj[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     ends = np.r_[starts[1:], key.size]
-    return [
-        ((int(pi[s]), int(pj[s])), xs[s:e], ys[s:e]) for s, e in zip(starts, ends, strict=True)
-    ]
+    return [((int(pi[s]), int(pj[s])), xs[s:e], ys[s:e]) for s, e in zip(starts, ends, strict=True)]
 
 
 def white_signal(ws: WaveSpec) -> npt.NDArray[np.float32]:

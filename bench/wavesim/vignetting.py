@@ -29,6 +29,7 @@ from bench.mcsim.camera import Camera
 from bench.wavesim.psf import FloatArray
 
 PUPIL_ROWS = 32
+Points = FloatArray | float  # sensor or lens positions, mm (broadcastable)
 
 
 @dataclass(frozen=True)
@@ -71,10 +72,10 @@ def stops(camera: Camera) -> list[Stop]:
 
 def pupil_fraction(
     camera: Camera,
-    sx: FloatArray,
-    sy: FloatArray,
-    mx: FloatArray,
-    my: FloatArray,
+    sx: Points,
+    sy: Points,
+    mx: Points,
+    my: Points,
     rows: int = PUPIL_ROWS,
 ) -> FloatArray:
     """V: the passing fraction of the pupil for sensor points (sx, sy) of lenses (mx, my), mm."""
@@ -111,10 +112,10 @@ def pupil_fraction(
 
 def transmission(
     camera: Camera,
-    sx: FloatArray,
-    sy: FloatArray,
-    mx: FloatArray,
-    my: FloatArray,
+    sx: Points,
+    sy: Points,
+    mx: Points,
+    my: Points,
     rows: int = PUPIL_ROWS,
 ) -> FloatArray:
     """``cos⁴θ·V`` at sensor points (sx, sy) mm seen through lenses centred at (mx, my) mm."""
