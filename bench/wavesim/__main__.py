@@ -49,7 +49,7 @@ def parser() -> argparse.ArgumentParser:
         type=_wavelengths,
         help="comma-separated wavelengths, equal weights (default 0.55)",
     )
-    g.add_argument("--oversample", type=int, help="cells per pixel and axis (default 4)")
+    g.add_argument("--oversample", type=int, help="cells per pixel and axis (default 8)")
     g.add_argument("--rings", type=float, help="kernel half-width beyond the blur, λb/D units")
     g = p.add_argument_group("camera")
     g.add_argument("--width", type=int)

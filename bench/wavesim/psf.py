@@ -22,8 +22,9 @@ Sampling (one frame, one wavelength):
   field that wide the phase step between pupil samples stays below π/2, and the
   periodic images of the PSF (the FFT's wrap-around) put < 0.1 % of the energy
   into the kernel;
-* pupil samples are area coverages of their cells (8×8 sub-samples), so the
-  aperture's edge is not a staircase.
+* pupil samples are area coverages of their cells (8×8 sub-samples; fewer,
+  down to 2×2, once more than 128 cells span D), so the aperture's edge is
+  not a staircase.
 
 Truncation: the kernel keeps the PSF within ±H (a square) and is renormalised
 to unit sum. What it drops (the far rings: ~1/(π²·rings) per axis for the
@@ -44,7 +45,7 @@ import scipy.fft
 FloatArray = npt.NDArray[np.float64]
 
 PUPIL_SAMPLES = 64  # minimum pupil samples across D
-COVERAGE_SUBSAMPLES = 8  # per pupil cell and axis
+COVERAGE_SUBSAMPLES = 8  # per pupil cell and axis (fewer, down to 2, above 128 cells across D)
 ALIAS_RINGS = 16  # diffraction units of room beyond the kernel on each side
 
 
@@ -58,7 +59,7 @@ class Pupil:
 
     def coverage(self, x_mm: FloatArray, y_mm: FloatArray, cell_mm: float) -> FloatArray:
         """Area fraction of each cell (centres x, y; side ``cell_mm``) inside the aperture."""
-        n = COVERAGE_SUBSAMPLES
+        n = max(2, min(COVERAGE_SUBSAMPLES, math.ceil(1024 * cell_mm / self.pitch_mm)))
         offsets = ((np.arange(n) + 0.5) / n - 0.5) * cell_mm
         t = math.radians(self.theta_deg)
         ct, st = math.cos(t), math.sin(t)

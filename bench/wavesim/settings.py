@@ -1,7 +1,7 @@
 """wavesim's own options and the render spec (mcsim's :class:`SweepSpec` plus the wave optics).
 
 Options beyond mcsim's (``bench.mcsim.spec``): ``wavelengths_um`` (µm, equal
-weights; default 0.55), ``oversample`` (cells per pixel and axis, default 4),
+weights; default 0.55), ``oversample`` (cells per pixel and axis, default 8),
 ``rings`` (kernel half-width in diffraction units λb/D beyond the geometric
 blur, default 8) and ``pupil_rows`` (the vignetting quadrature, default 32).
 mcsim's ray-tracer options (``rays``, ``subpixel``, ``jitter``,
@@ -20,7 +20,7 @@ from bench.mcsim.spec import SweepSpec, build_spec
 RAY_OPTIONS = ("rays", "subpixel", "jitter", "white_rays", "airy_wavelength_um", "spherical_mm")
 WAVE_DEFAULTS: dict[str, Any] = {
     "wavelengths_um": (0.55,),
-    "oversample": 4,
+    "oversample": 8,
     "rings": 8.0,
     "pupil_rows": 32,
 }
@@ -31,7 +31,7 @@ class WaveSettings:
     """Wavelengths (µm, equal weights), cells per pixel, kernel rings, vignetting rows."""
 
     wavelengths_um: tuple[float, ...] = (0.55,)
-    oversample: int = 4
+    oversample: int = 8
     rings: float = 8.0
     pupil_rows: int = 32
 
