@@ -16,13 +16,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.special import j1
+from scipy.special import fresnel, j1
 
 from bench.wavesim import sweep as wsweep
 from bench.wavesim.__main__ import main as wavesim_main
 from bench.wavesim.kernel import frame_kernel
 from bench.wavesim.psf import Pupil, fine_psf
-from bench.wavesim.render import lenses_signal, white_signal
+from bench.wavesim.render import kernel_for, lenses_signal, white_signal
 from bench.wavesim.settings import build_wave_spec
 
 LAM = 0.55e-3  # mm
@@ -121,6 +121,35 @@ def test_defocused_disc_psf_peak_follows_sinc_squared_of_the_rim_wavefront(w20: 
     expected = (math.sin(x) / x) ** 2
     print(f"W20 = {w20} λ: peak ratio {ratio:.5f}, expected {expected:.5f}")
     assert ratio == pytest.approx(expected, rel=0.01)
+
+
+@pytest.mark.parametrize("w20", [0.3, 0.6])
+def test_frame_kernel_defocus_follows_the_board_distance(w20: float) -> None:
+    """The renderer's kernel at u: peak / in-focus peak = the square pupil's Fresnel result.
+
+    Square pupil: the on-axis amplitude factors, ∫_{-D/2}^{D/2} exp(iπcξ²/λ) dξ
+    = √(2λ/c)·(C(X) + iS(X)) with X = (D/2)·√(2c/λ) (Fresnel integrals), so
+    I(0)/I_focus = [(C² + S²)/X²]², with c = |1/a(u) - 1/a_f| from OPTICS.md.
+    """
+    ws = build_wave_spec(**{**CAMERA, "oversample": 4})
+    cam = ws.sweep.camera
+    D = cam.mla_pitch_mm
+    c = 2.0 * w20 * LAM / (D / 2) ** 2  # W20 = (D/2)²·c/2 at the middle of the side
+    a_f = 1.0 / (1.0 / cam.mla_focal_mm - 1.0 / cam.sensor_distance_mm)
+    v = cam.mla_distance_mm - 1.0 / (1.0 / a_f + c)
+    u = v * cam.main_focal_mm / (v - cam.main_focal_mm)
+    focus, _ = kernel_for(ws, cam.u_focus_mm)
+    defocus, _ = kernel_for(ws, u)
+    m, n = defocus.half_cells, focus.half_cells
+    # on the axis (not the maximum); undo the renormalisation after the truncation
+    ratio = (defocus.values[m, m] * (1 - defocus.truncated_energy)) / (
+        focus.values[n, n] * (1 - focus.truncated_energy)
+    )
+    x = D / 2 * math.sqrt(2 * c / LAM)
+    s_x, c_x = fresnel(x)
+    expected = ((c_x**2 + s_x**2) / x**2) ** 2
+    print(f"W20 = {w20} λ at u = {u:.2f} mm: kernel peak ratio {ratio:.5f}, Fresnel {expected:.5f}")
+    assert ratio == pytest.approx(expected, rel=0.005)
 
 
 # ---- 2. in-focus diffraction patterns ----------------------------------------------------
