@@ -64,7 +64,7 @@ Physics (thin lenses, paraxial, scalar, incoherent, Fresnel)
 Options: mcsim's camera, board, rail, window and sensor options and presets
 (``--preset small|between|paper``); its ray-tracer options are refused.
 Speed: ``--preset small --start-mm 20 --frames 31 --step-mm 2 --jobs 2``
-renders in about 2 minutes on 2 cores (see README_SECTION.md).
+renders in about 2.5 minutes on 2 shared cores (see README_SECTION.md).
 """
 
 from bench.wavesim.settings import build_wave_spec
