@@ -237,12 +237,15 @@ def test_tiny_wavelength_gives_the_geometric_blur_of_the_pupil(shape: str) -> No
 
 # ---- 4. energy: a uniform board ----------------------------------------------------------
 def _brute_transmission(cam, i, j, x_px, y_px, n=96):
-    """cos⁴(chief ray)·(fraction of an n×n grid of pupil points whose ray passes A).
+    """cos⁴(chief ray)·(fraction of an n×n grid of pupil points whose ray passes the stops).
 
     Each ray from the sensor point s through pupil point ξ is bent by the thin
-    microlens (slope change -(ξ - m)/f going forward) and followed back to z = 0.
+    microlens (slope change -(ξ - m)/f going forward) and followed back to the
+    main lens at z = 0 (aperture A); a second stop at 0 < Z < L is met on the
+    way, one at Z < 0 after the main lens bends the ray (slope change -x0/F).
     """
     L, b, f = cam.mla_distance_mm, cam.sensor_distance_mm, cam.mla_focal_mm
+    Z, A_v = cam.vignetting_stop_mm, cam.vignetting_diameter_mm
     mx, my = _lens_mm(cam, i, j)
     g = ((np.arange(n) + 0.5) / n - 0.5) * cam.mla_pitch_mm
     px, py = np.meshgrid(mx + g, my + g)
@@ -256,15 +259,31 @@ def _brute_transmission(cam, i, j, x_px, y_px, n=96):
         slope_x = (sx - px) / b + (px - mx) / f  # between the main lens and the MLA
         slope_y = (sy - py) / b + (py - my) / f
         x0, y0 = px - L * slope_x, py - L * slope_y
-        passed = np.mean(x0**2 + y0**2 <= (cam.main_aperture_mm / 2) ** 2)
+        ok = x0**2 + y0**2 <= (cam.main_aperture_mm / 2) ** 2
+        if Z is not None and Z > 0:
+            zx, zy = px - (L - Z) * slope_x, py - (L - Z) * slope_y
+            ok &= zx**2 + zy**2 <= (A_v / 2) ** 2
+        elif Z is not None:
+            F = cam.main_focal_mm
+            zx = x0 + Z * (slope_x + x0 / F)  # object side: slope + x0/F
+            zy = y0 + Z * (slope_y + y0 / F)
+            ok &= zx**2 + zy**2 <= (A_v / 2) ** 2
+        passed = np.mean(ok)
         out.append(passed * _cos4(cam, i, j, x, y))
     return np.array(out)
 
 
-@pytest.mark.parametrize("shape", ["square", "circle"])
-def test_uniform_board_renders_reflectance_times_cos4_times_vignetting(shape: str) -> None:
+@pytest.mark.parametrize(
+    ("shape", "stop"),
+    [("square", None), ("circle", None), ("square", (14.5, 1.6)), ("circle", (-5.0, 2.6))],
+)
+def test_uniform_board_renders_reflectance_times_cos4_times_vignetting(
+    shape: str, stop: tuple[float, float] | None
+) -> None:
     u = 170.0
     options = {"aperture": shape, "board_offset": (1000.0, 1000.0), "theta_deg": 0.3}
+    if stop is not None:  # a second stop behind (Z > 0) or in front of (Z < 0) the main lens
+        options.update(vignetting_stop_mm=stop[0], vignetting_diameter_mm=stop[1])
     cam, signal = _render(options, u, [(1, -1)])
     ws = build_wave_spec(**{**CAMERA, **options})
     white = white_signal(ws).astype(np.float64)
@@ -280,9 +299,15 @@ def test_uniform_board_renders_reflectance_times_cos4_times_vignetting(shape: st
         [_brute_transmission(cam, 1, -1, px + ox, py + oy) for ox in sub for oy in sub], axis=0
     )
     err = np.abs(signal[py, px] - 0.95 * truth)
-    print(f"{shape}: V<1 on {np.mean(truth < 0.99):.0%} of the picks, worst error {err.max():.4f}")
+    print(
+        f"{shape} {stop}: V<1 on {np.mean(truth < 0.99):.0%} of picks, worst error {err.max():.4f}"
+    )
     assert (truth < 0.5).any() and (truth > 0.99).any()  # the rim is covered
     assert err.max() < 0.006
+    if stop is not None:  # the second stop really cuts light here
+        plain = {k: v for k, v in options.items() if not k.startswith("vignetting")}
+        unstopped = white_signal(build_wave_spec(**{**CAMERA, **plain}))
+        assert np.abs(unstopped[py, px] - signal[py, px]).max() > 0.05
 
 
 # ---- 5. geometry: where lens m images a main-image point ---------------------------------
