@@ -84,6 +84,13 @@ FLAT_RANGE_PX = (2.0, 8.0)
 TAIL_SAMPLES = 2
 """Samples of each tail beyond the flat distance (at least)."""
 
+MIN_STEP_FRACTION = 0.1
+"""Profiles whose step (light minus dark level, counts) is below this fraction of the corner's
+typical step (the 90th percentile of the frame's) are dropped: they lie in unlit parts of the
+frame (outside the main lens's image circle, a micro-image the corner's lattice predicts but
+no light reaches) and are noise. Their weight (the step squared) is negligible, but a bin of
+the function that only such samples reach would read the dark level with a tiny error."""
+
 
 @dataclass
 class EdgeProfiles:
@@ -526,7 +533,7 @@ def frame_esf(
         z, c = levels_with_drift(prof.x, prof.y, prof.block, x_flat)
     else:
         z, c = levels_with_tail_shape(prof.x, prof.y, x_flat)
-    good = np.isfinite(c) & (c > 0) & np.all(np.isfinite(z), axis=1)
+    good = _lit(c) & np.all(np.isfinite(z), axis=1)
     if good.sum() < MIN_PROFILES:
         return None
     weight = np.repeat(c * c, prof.x.shape[1]).reshape(prof.x.shape)
@@ -555,6 +562,15 @@ def frame_esf(
         jitter_fixed_scale_px=float(jitter_fixed_scale_px),
         lever_groups=groups,
     )
+
+
+def _lit(step: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Profiles with a finite step of at least ``MIN_STEP_FRACTION`` of the typical one."""
+    positive = np.isfinite(step) & (step > 0)
+    if not positive.any():
+        return positive
+    typical = float(np.quantile(step[positive], 0.9))
+    return positive & (step >= MIN_STEP_FRACTION * typical)
 
 
 def _lever_groups(
