@@ -1,6 +1,6 @@
-"""Focus plane, a, b and the data-sheet priors on three renderers, with uncertainty coverage.
+"""Focus plane, a, b and the data-sheet priors on four renderers, with uncertainty coverage.
 
-``python -m bench.bench_focus [--renderers sim,indsim,mcsim] [--configs NAMES]
+``python -m bench.bench_focus [--renderers sim,indsim,mcsim,wavesim] [--configs NAMES]
 [--seeds N] [--repeats N] [--jobs N] [--quick] [--root DIR]`` (``python -m bench focus`` runs
 the full default; not in the default ``make bench`` set: the first run renders
 for hours). What it renders and why: :mod:`bench.focus.configs`; targets:
@@ -353,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m bench.bench_focus", description=__doc__.split("\n")[0]
     )
     p.add_argument(
-        "--renderers", type=_names, default=RENDERERS, help="comma list of sim,indsim,mcsim"
+        "--renderers", type=_names, default=RENDERERS, help="comma list of sim,indsim,mcsim,wavesim"
     )
     p.add_argument(
         "--configs",

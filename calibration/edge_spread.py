@@ -84,7 +84,7 @@ FLAT_RANGE_PX = (2.0, 8.0)
 TAIL_SAMPLES = 2
 """Samples of each tail beyond the flat distance (at least)."""
 
-MIN_STEP_FRACTION = 0.1
+MIN_STEP_FRACTION = 0.02
 """Profiles whose step (light minus dark level, counts) is below this fraction of the corner's
 typical step (the 90th percentile of the frame's) are dropped: they lie in unlit parts of the
 frame (outside the main lens's image circle, a micro-image the corner's lattice predicts but

@@ -34,6 +34,7 @@ from bench.focus.configs import (
     RANDOM_MIN_BLUR_PX,
     PriorOffset,
     SweepConfig,
+    _rendered_frame,
     placement_shift_px,
     principal_point_px,
     random_camera_config,
@@ -388,3 +389,19 @@ def test_random_cameras_join_the_full_run_not_the_quick_one() -> None:
     assert set(named) == {RANDOM_CAMERAS}
     assert RANDOM_CAMERAS not in select(("sim", "mcsim"), None, 3, True)[1]
     assert RANDOM_CAMERAS not in select(("sim",), None, 3, False)[1]
+
+
+def test_wavesim_sweeps_are_rendered_and_moved_on_the_pixels_by_the_fourier_renderer() -> None:
+    """The Fourier-optics renderer's sweeps: its own module renders them, and a repeat moves
+    the image against the pixel grid through its principal point, read by its own parser
+    (the frame it fitted kept, so the move does not fit the frame again)."""
+    config = next(c for c in ACCURACY["wavesim"] if "--fit-frame" in c.args)
+    command = cache.render_command(config, Path("out-dir"), jobs=2)
+    assert command[1:3] == ["-m", "bench.wavesim"]
+    assert command[3:5] == ["out-dir", "--seed"]
+    (x, y), width, height = _rendered_frame(config)
+    moved = repeat_config(config, 1)
+    assert "--fit-frame" not in moved.args
+    assert _rendered_frame(moved)[1:] == (width, height)
+    dx, dy = placement_shift_px(1)
+    np.testing.assert_allclose(_rendered_frame(moved)[0], (x + dx, y + dy), atol=1e-4)

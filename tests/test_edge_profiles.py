@@ -303,11 +303,13 @@ def test_placed_again_with_no_error_is_the_whole_function() -> None:
 
 def test_dim_profiles_keep_their_weights_through_json() -> None:
     """A profile weighs its contrast squared, so weights span decades: a frame whose left
-    half is 300x dimmer (weights 1e-5 of the others) still gives finite functions placed
-    again, the dim bins kept (rounded to fixed decimals their weights were 0: NaN bins)."""
+    half is 40x dimmer (weights 6e-4 of the others) still gives finite functions placed
+    again, the dim bins kept (rounded to fixed decimals their weights were 0: NaN bins).
+    (Profiles below 1/50 of the typical step are dropped as unlit,
+    ``test_edge_spread.py::test_profiles_in_unlit_parts_of_the_frame_are_dropped``.)"""
     frame, lens, image, coef = _frame()
     dim = frame.astype(np.float64)
-    dim[:, : dim.shape[1] // 2] /= 300.0
+    dim[:, : dim.shape[1] // 2] /= 40.0
     esf = _scale_only_esf(dim, lens, image, coef)
     weights = np.concatenate([g.esf.sample_weight for g in esf.lever_groups])
     assert weights.min() < 1e-3 * weights.max()  # the dim profiles' bins are there

@@ -28,7 +28,7 @@ from station.summary_table import truth_value
 ROOT = Path("out/bench/focus")
 MARKER = ".complete"
 MARKER_FORMAT = "lfcal-bench-focus/1"
-RENDERER_REVISIONS = {"sim": 1, "indsim": 2, "mcsim": 1}
+RENDERER_REVISIONS = {"sim": 1, "indsim": 2, "mcsim": 1, "wavesim": 1}
 """Bumped when a renderer's output changes, so its cached sweeps are rendered again
 (indsim 2: board raster at least 32 points per sensor pixel)."""
 
@@ -56,6 +56,8 @@ def render_command(config: SweepConfig, out: Path, jobs: int = 1) -> list[str]:
         module = "bench.crosscheck.indsim"
     elif config.renderer == "mcsim":
         module = "bench.mcsim"
+    elif config.renderer == "wavesim":
+        module = "bench.wavesim"
     else:
         raise ValueError(f"unknown renderer {config.renderer!r}")
     return [sys.executable, "-m", module, str(out), *seed, "--jobs", str(jobs), *config.args]

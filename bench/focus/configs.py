@@ -1,13 +1,17 @@
 """The sweeps of the focus benchmark and the data-sheet offsets they are calibrated with.
 
-Three renderers write ``lfcal-sweep/1`` archives with a ``truth.json``:
+Four renderers write ``lfcal-sweep/1`` archives with a ``truth.json``:
 
 * ``sim``: the project's simulator (``python -m station.cli simulate``, i.e.
   ``lfcal simulate``), Gaussian PSF, analytic pixel integration;
 * ``indsim``: the independent analytic renderer (``bench/crosscheck/indsim.py``),
   PSF per ray on the board, 2×2 sub-pixels × N×N aperture cells;
 * ``mcsim``: the Monte-Carlo ray tracer (``bench/mcsim``), 30 rays per point
-  sample, 2×2 point samples per pixel, no PSF: the blur carries ray noise.
+  sample, 2×2 point samples per pixel, no PSF: the blur carries ray noise;
+* ``wavesim``: the Fourier-optics renderer (``bench/wavesim``), every micro-image
+  the board's exact image convolved with the defocused microlens pupil's incoherent
+  PSF (scalar Fresnel optics), so that inside the diffraction-limited depth of focus
+  a defocus moves light into the pattern's rings, as light does.
 
 On each renderer three accuracy sweeps cover, together, what issue 10 asks
 for: a focus plane between rail steps, a sweep that starts or ends about 8 mm
@@ -49,7 +53,7 @@ import numpy as np
 
 from calibration.optics import image_distance
 
-RENDERERS = ("sim", "indsim", "mcsim")
+RENDERERS = ("sim", "indsim", "mcsim", "wavesim")
 
 
 @dataclass(frozen=True)
@@ -257,12 +261,41 @@ ACCURACY: dict[str, tuple[SweepConfig, ...]] = {
             standard_only=True,
         ),
     ),
+    "wavesim": (
+        SweepConfig(
+            "wavesim",
+            "small-2mm",
+            _args("--preset small --step-mm 2 --frames 50"),
+            31,
+            "50 px lenses at f/15.6 in green light (pattern scale λN = 3.4 px against at most "
+            "1.5 px of geometric defocus at the sweep's ends), 2 mm steps, focus at rail 50.3 mm",
+        ),
+        SweepConfig(
+            "wavesim",
+            "between-end8-white",
+            _args("--preset between --frames 59 --wavelengths-um 0.45,0.55,0.65"),
+            32,
+            "80 px lenses at f/12.5 in white light (450, 550, 650 nm), rail towards the camera, "
+            "focus between steps, sweep ends 8.5 mm past it",
+        ),
+        SweepConfig(
+            "wavesim",
+            "paper-standard-start8",
+            _args("--preset paper --corners standard --fit-frame --start-mm 42 --frames 58"),
+            33,
+            "the paper's camera (f/12, pattern scale 2.64 px), only the standard corner "
+            "rendered, sweep starts 8 mm before the focus plane",
+            priors=(EXACT, ALL_OFF),
+            standard_only=True,
+        ),
+    ),
 }
 
 COVERAGE_CAMERA = {
     "sim": "--preset paper --width 2640 --height 960",
     "indsim": INDSIM_SMALL + " --nap 3",
     "mcsim": "--preset small",
+    "wavesim": "--preset small",
 }
 """The cheap two-corner cameras of the coverage sweeps (focus near rail 50 mm)."""
 
@@ -386,7 +419,12 @@ def random_camera_config(k: int) -> SweepConfig:
 
 REPEAT_SEED_STEP = 1000
 
-PRINCIPAL_POINT_OPTION = {"sim": "--principal-point", "indsim": "--pp", "mcsim": "--pp"}
+PRINCIPAL_POINT_OPTION = {
+    "sim": "--principal-point",
+    "indsim": "--pp",
+    "mcsim": "--pp",
+    "wavesim": "--pp",
+}
 """Each renderer's option that places the optical axis on the sensor (px)."""
 
 
@@ -405,13 +443,19 @@ def _rendered_frame(config: SweepConfig) -> tuple[tuple[float, float], int, int]
     """The principal point (px) and the frame size ``config`` renders with, worked out by
     the renderer's own command line (mcsim's spec, ``lfcal simulate``'s preset; indsim's
     configs give ``--pp``, ``--width`` and ``--height``)."""
-    if config.renderer == "mcsim":
-        from bench.mcsim.__main__ import parser as mcsim_parser
+    if config.renderer in ("mcsim", "wavesim"):
+        if config.renderer == "mcsim":
+            from bench.mcsim.__main__ import parser
+        else:
+            from bench.wavesim.__main__ import parser
         from bench.mcsim.spec import build_spec
+        from bench.wavesim.settings import split_options
 
-        options = vars(mcsim_parser().parse_args(["-", *config.args]))
+        options = vars(parser().parse_args(["-", *config.args]))
         for name in ("out_dir", "force", "jobs"):
             options.pop(name)
+        if config.renderer == "wavesim":
+            options = split_options(options)[0]
         camera = build_spec(**options).camera
         x, y = camera.principal_point_px
         return (float(x), float(y)), int(camera.width), int(camera.height)
