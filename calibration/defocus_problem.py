@@ -64,13 +64,13 @@ KAPPA_MAX = 1.0
 (:mod:`calibration.defocus`)."""
 
 
-def _node_spread(rows: NDArray[np.float64], lattice_px: float) -> NDArray[np.float64]:
+def _node_spread(rows: NDArray[np.floating], lattice_px: float) -> NDArray[np.floating]:
     """``rows`` (functions on a lattice of spacing ``lattice_px``) convolved with the
     triangle that spreads a static node's mass to its neighbours (two centred moving
     averages of the odd number of lattice steps nearest ``STATIC_STEP_PX``)."""
     taps = 2 * int(round(0.5 * STATIC_STEP_PX / lattice_px)) + 1
     once = uniform_filter1d(rows, taps, axis=-1, mode="nearest")
-    return np.asarray(uniform_filter1d(once, taps, axis=-1, mode="nearest"), dtype=np.float64)
+    return np.asarray(uniform_filter1d(once, taps, axis=-1, mode="nearest"), dtype=rows.dtype)
 
 
 @dataclass(frozen=True)
@@ -215,7 +215,7 @@ class DefocusProblem:
         self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
         ramp = np.maximum(self.lattice, 0.0)
         # what spreading the nodes (:func:`_node_spread`) adds to the ramp max(t, 0)
-        self.ramp_spread = _node_spread(ramp, self.LATTICE_PX) - ramp
+        self.ramp_spread = (_node_spread(ramp, self.LATTICE_PX) - ramp).astype(np.float32)
         self.norm = (4.0 * half)[:, :, None].astype(np.float32)  # 2w (bin average) x 2 (mirror)
         # ∫C follows the ramp max(t, 0) outside the kernel: its part of every interval's
         # difference, IC(x̄+w∓g) - IC(x̄-w∓g), is clip(x̄+w∓g, 0, 2w), taken exactly here
@@ -274,11 +274,12 @@ class DefocusProblem:
             if s > 0.0:
                 share = float(s) / WAVE_MIN_PX
                 integral = (1.0 - share) * integral + share * self._wave_rest(d, alpha, WAVE_MIN_PX)
-        integral = _node_spread(integral, self.LATTICE_PX) + self.ramp_spread
         # linear interpolation on the lattice from its values and forward differences, of the
         # part beyond the ramp (bounded: float32 keeps ~1e-8 of it where ∫C itself reaches
         # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
-        flat = integral.ravel().astype(np.float32)
+        # the static nodes spread (:func:`_node_spread`), in the lattice's float32
+        spread = _node_spread(integral.astype(np.float32), self.LATTICE_PX)
+        flat = (spread + self.ramp_spread).ravel()
         step = np.zeros_like(flat)
         np.subtract(flat[1:], flat[:-1], out=step[:-1])
         out = np.zeros(self.index[0].size, dtype=np.float32)
