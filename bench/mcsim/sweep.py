@@ -113,23 +113,33 @@ def cached_sweep(name: str, jobs: int | None = None, **options: Any) -> Path:
     with the same name and options returns at once, one with other options
     renders again. ``jobs`` defaults to the number of CPUs.
     """
-    key = _cache_key(options)
-    target = CACHE_ROOT / name
-    marker = target / COMPLETE
-    if marker.exists() and marker.read_text() == key:
-        return target
-    spec = build_spec(**options)
-    CACHE_ROOT.mkdir(parents=True, exist_ok=True)
-    tmp = CACHE_ROOT / f".{name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    try:
-        render_sweep(
-            spec,
+    return cached_render(
+        CACHE_ROOT,
+        name,
+        _cache_key(options),
+        lambda tmp: render_sweep(
+            build_spec(**options),
             tmp,
             jobs=jobs or os.cpu_count() or 1,
             progress=lambda line: print(f"mcsim {name}: {line}", file=sys.stderr, flush=True),
-        )
+        ),
+    )
+
+
+def cached_render(root: Path, name: str, key: str, render: Callable[[Path], object]) -> Path:
+    """``root/<name>/`` rendered by ``render(directory)`` unless its ``.complete`` marker
+    already holds ``key``: rendered into a temporary directory, the marker written last,
+    then moved into place (a concurrent render of the same key wins harmlessly)."""
+    target = root / name
+    marker = target / COMPLETE
+    if marker.exists() and marker.read_text() == key:
+        return target
+    root.mkdir(parents=True, exist_ok=True)
+    tmp = root / f".{name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        render(tmp)
         (tmp / COMPLETE).write_text(key)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -22,6 +22,7 @@ from typing import Any
 from bench.mcsim.archive import frame_file, manifest, truth, write_json, write_png
 from bench.mcsim.render import WHITE
 from bench.mcsim.spec import merged_options
+from bench.mcsim.sweep import cached_render
 from bench.wavesim.render import WaveStats, render_image
 from bench.wavesim.settings import WaveSpec, build_wave_spec, split_options
 
@@ -145,31 +146,14 @@ def cached_sweep(name: str, jobs: int | None = None, **options: Any) -> Path:
     with the same name and options returns at once, one with other options
     renders again. ``jobs`` defaults to the number of CPUs.
     """
-    key = _cache_key(options)
-    target = CACHE_ROOT / name
-    marker = target / COMPLETE
-    if marker.exists() and marker.read_text() == key:
-        return target
-    ws = build_wave_spec(**options)
-    CACHE_ROOT.mkdir(parents=True, exist_ok=True)
-    tmp = CACHE_ROOT / f".{name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    try:
-        render_sweep(
-            ws,
+    return cached_render(
+        CACHE_ROOT,
+        name,
+        _cache_key(options),
+        lambda tmp: render_sweep(
+            build_wave_spec(**options),
             tmp,
             jobs=jobs or os.cpu_count() or 1,
             progress=lambda line: print(f"wavesim {name}: {line}", file=sys.stderr, flush=True),
-        )
-        (tmp / COMPLETE).write_text(key)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if marker.exists() and marker.read_text() == key:  # another process got there first
-        shutil.rmtree(tmp)
-        return target
-    if target.exists():
-        shutil.rmtree(target)
-    os.replace(tmp, target)
-    return target
+        ),
+    )
