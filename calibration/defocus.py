@@ -33,11 +33,12 @@ instead of widening the core, which the convolution above does not describe (exa
 Fresnel edges of the paper's camera fitted ``κ`` 0.43 and put ``Q0`` 0.36 % off).
 :func:`fit_defocus` therefore also fits the wave-optical kernel
 (:mod:`calibration.wave_defocus`, one parameter more: the pattern's scale ``s = λN/δ``)
-and takes it when it describes the edges better by more than ``WAVE_SELECT_CHI2``.
+and takes it when it describes the edges better by more than ``WAVE_SELECT_CHI2``; the
+two models' disagreement on ``Q0`` is then part of its uncertainty.
 
 Each frame contributes its binned, normalised edge-spread function
-(:mod:`calibration.edge_spread`; both corners' functions centred on their own
-edges and merged, :func:`pool_corners`), with a free offset and gain (tails of
+(:mod:`calibration.edge_spread`; of one corner throughout the sweep,
+:func:`one_corner`), with a free offset and gain (tails of
 the static blur beyond the profile) and a free shift (the corner lattice that
 placed the samples has a common error, :mod:`calibration.edge_profiles`). The
 lattice's placement error also spreads the samples: the function is the edge
@@ -82,7 +83,7 @@ __all__ = [
     "fit_defocus",
     "jackknife_defocus",
     "jackknife_warning",
-    "pool_corners",
+    "one_corner",
     "rough_focus",
 ]
 
@@ -103,7 +104,17 @@ measured.)"""
 
 WAVE_SELECT_CHI2 = 9.0
 """The chi-square the wave-optical defocus kernel (one parameter more, the diffraction scale)
-must gain over the geometric one to be taken (:func:`fit_defocus`): three sigma."""
+must gain over the geometric one to be taken (:func:`fit_defocus`): three sigma.
+
+The choice is not trusted further than that. Whenever both kernels were fitted, ``Q0``'s
+uncertainty includes their disagreement, ``|Q0_geometric - Q0_wave|`` in quadrature
+(``DefocusFit.Q0_se_kernel``): within the microlens's diffraction-limited depth of focus
+the edges widen by a few per cent of their width over a whole sweep, both models fit
+that to within their noise and the model floor, and the chi-square prefers one by
+chance of shape (on 20 Fourier-optics sweeps geometric optics won by 10-80 on most,
+with ``κ`` 0.3-0.4 and ``Q0`` up to 2 % off while the wave kernel's was within its
+uncertainty; their difference is what the data cannot settle). Where the edges are far
+from diffraction-limited the wave kernel is not tried and the term is zero."""
 
 WAVE_TRIAL_COST_RATIO = 2.0
 """The wave-optical fit is tried only when one of its starts (:func:`_wave_fit`) costs less
@@ -168,6 +179,12 @@ class DefocusFit:
     jackknife_Q0: tuple[float, ...] = ()
     jackknife_z: tuple[float, ...] = ()
     jackknife_consistent: bool | None = None
+    Q0_se_kernel: float = 0.0
+    """``|Q0 - Q0_other_kernel|``, in ``Q0_se_model`` (quadrature): the two blur models, when
+    both were fitted, put the focus plane this far apart (:data:`WAVE_SELECT_CHI2`)."""
+    Q0_other_kernel: float = float("nan")
+    """``Q0`` of the blur model not taken (geometric or wave-optical); NaN when the
+    wave-optical one was not tried (edges far from diffraction-limited)."""
 
     def blur_diameter_px(
         self, Q: float | NDArray[np.float64], lens_pitch_px: float
@@ -237,11 +254,15 @@ def fit_defocus(
     geometric = np.concatenate([theta0[:3], [0.0]])
     optics = _robust_fit(prob, geometric, rows, q_bounds, diffraction=False)
     _check_blur(optics[0], prob, lens_pitch_px, min_blur_px)
-    wave = _wave_fit(prob, optics, rows, q_bounds, start_scale=float(theta0[3]))
+    wave, wave_q0 = _wave_fit(prob, optics, rows, q_bounds, start_scale=float(theta0[3]))
     theta, cov, robust, chi2 = wave if wave is not None else optics
     se_curv = float(np.sqrt(max(cov[0, 0], 0.0)))
     se_cluster = float(np.sqrt(max(robust[0, 0], 0.0)))
     q0_systematic = DIAMETER_SYSTEMATIC_PX / (diameter_factor(theta[1], theta[2]) * lens_pitch_px)
+    # the blur model not taken, when both were fitted: their disagreement is uncertain too
+    other_q0 = float(optics[0][0]) if wave is not None else wave_q0
+    q0_kernel = abs(float(theta[0]) - other_q0) if np.isfinite(other_q0) else 0.0
+    q0_se_model = float(np.hypot(np.hypot(max(se_curv, se_cluster), q0_systematic), q0_kernel))
     a = prob.design(theta, rows)
     s, offset, gain = prob.solve_linear(a, rows)
     weights = np.maximum(s, 0.0)
@@ -267,11 +288,13 @@ def fit_defocus(
         per_frame.setdefault(int(f), float(b))
     result = DefocusFit(
         Q0=float(theta[0]),
-        Q0_se=float(np.hypot(max(se_curv, se_cluster), q0_systematic)),
-        Q0_se_model=float(np.hypot(max(se_curv, se_cluster), q0_systematic)),
+        Q0_se=q0_se_model,
+        Q0_se_model=q0_se_model,
         Q0_se_curvature=se_curv,
         Q0_se_cluster=se_cluster,
         Q0_se_systematic=q0_systematic,
+        Q0_se_kernel=q0_kernel,
+        Q0_other_kernel=other_q0,
         kappa=float(theta[1]),
         shape_box=float(theta[2]),
         diffraction_px=float(theta[3]),
@@ -328,7 +351,9 @@ def _wave_fit(
     q_bounds: tuple[float, float],
     *,
     start_scale: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None:
+) -> tuple[
+    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None, float
+]:
     """The fit with the microlens's diffraction (:mod:`calibration.wave_defocus`), when it
     describes the edges better than geometric optics; None (and the problem's weights as
     the geometric fit left them) when it does not.
@@ -340,24 +365,26 @@ def _wave_fit(
     up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
     (the geometric fit's frame weights), it lowers the chi-square by more than
     ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and then re-weighted as the
-    geometric fit was."""
+    geometric fit was. Also returns the wave-optical fit's ``Q0`` whether taken or not (NaN
+    when it was not tried)."""
     theta_g = geometric[0]
     geometric_cost = float(np.sum(prob.residuals(theta_g, rows) ** 2))
     scales = np.unique(np.array([1.0, 2.0, 3.0, 4.5, max(start_scale, 1.0)]))
     trials = [np.array([theta_g[0], 1.0, shape, sc]) for sc in scales for shape in (0.0, 1.0)]
     costs = [float(np.sum(prob.residuals(t, rows) ** 2)) for t in trials]
     if min(costs) > WAVE_TRIAL_COST_RATIO * geometric_cost:
-        return None
+        return None, float("nan")
     trial = prob.fit(trials[int(np.argmin(costs))], rows, q_bounds, diffraction=True)
+    trial_q0 = float(trial[0][0]) if trial[0][3] > 0.0 else float("nan")
     gain = geometric_cost - float(np.sum(prob.residuals(trial[0], rows) ** 2))
     if not (trial[0][3] > 0.0 and gain > WAVE_SELECT_CHI2):
-        return None
+        return None, trial_q0
     kept_scale = prob.noise_scale.copy()
     wave = _reweighted(prob, trial, rows, q_bounds, diffraction=True)
     if wave[0][3] > 0.0:
-        return wave
+        return wave, float(wave[0][0])
     prob.scale_noise(kept_scale)
-    return None
+    return None, trial_q0
 
 
 def _check_blur(
@@ -376,8 +403,9 @@ def _check_blur(
 
 
 def _usable(observations: Sequence[EdgeObservation]) -> list[EdgeObservation]:
-    """The observations the fit uses (a finite ``Q``, at least 10 bins), one per frame."""
-    return pool_corners([o for o in observations if np.isfinite(o.Q) and o.esf.x.size >= 10])
+    """The observations the fit uses (a finite ``Q``, at least 10 bins), one per frame, all
+    of one corner (:func:`one_corner`)."""
+    return one_corner([o for o in observations if np.isfinite(o.Q) and o.esf.x.size >= 10])
 
 
 def _q_bounds(q: NDArray[np.float64]) -> tuple[float, float]:
@@ -475,30 +503,26 @@ def jackknife_warning(fit: DefocusFit, lens_pitch_px: float) -> str | None:
     )
 
 
-def pool_corners(observations: Sequence[EdgeObservation]) -> list[EdgeObservation]:
-    """One observation per frame: its corners' functions, each centred on its own edge, merged.
+def one_corner(observations: Sequence[EdgeObservation]) -> list[EdgeObservation]:
+    """The observations of one corner for the whole sweep, one per frame: the corner with
+    edge-spread functions in the most frames (the standard corner on a tie).
 
-    The corners of a frame see the same defocus (their Q agree to ~1e-4, which
-    the result checks) and share the static kernel, but each corner's function
-    is placed by its own lattice, so their origins may differ by a fraction of
-    the placement error: each is centred on the centroid of its line spread
-    before merging (a symmetric blur's centroid is the edge). ``Q`` is the
-    profile-weighted mean of the corners'.
+    The two corners' functions are not the same function. The reference corner's
+    half-edges are offset by the board's gap (OPTICS.md): any blur that reaches along an
+    edge past the corner (a defocus disk wider than the profiles' clearance, diffraction's
+    1/x² tails at any distance) mixes two steps the gap apart into its profiles, and the
+    gap's image (px) changes with the board's distance; the standard corner's edges run
+    straight through it. Where the share of one corner changes along the sweep (its
+    micro-images enter or leave the windows), merging them changes the function's shape
+    with ``Q`` as a defocus would: on wave-optical sweeps whose far half alone showed
+    the reference corner, the wave-optical fit put ``Q0`` 0.3 % low on average (1.2σ, 16
+    of 16 seeds low); with the standard corner alone, 0.03 %. So one corner is used
+    throughout, and frames without it are left out of the defocus fit.
     """
-    by_frame: dict[int, list[EdgeObservation]] = {}
+    by_corner: dict[str, dict[int, EdgeObservation]] = {}
     for o in observations:
-        by_frame.setdefault(o.frame, []).append(o)
-    pooled = []
-    for frame, parts in sorted(by_frame.items()):
-        if len(parts) == 1:
-            pooled.append(parts[0])
-            continue
-        centres = [p.esf.centre_px() for p in parts]
-        esfs = [
-            p.esf.shifted(-c) if np.isfinite(c) else p.esf
-            for p, c in zip(parts, centres, strict=True)
-        ]
-        weights = np.array([p.esf.profiles for p in parts], dtype=np.float64)
-        q = float(np.sum(weights * np.array([p.Q for p in parts])) / np.sum(weights))
-        pooled.append(EdgeObservation(frame, "both", q, BinnedEsf.merge(esfs)))
-    return pooled
+        by_corner.setdefault(o.corner, {})[o.frame] = o
+    if not by_corner:
+        return []
+    corner = max(by_corner, key=lambda c: (len(by_corner[c]), c == "standard"))
+    return [o for _, o in sorted(by_corner[corner].items())]
