@@ -37,6 +37,7 @@ from .defocus import (
     DefocusFit,
     DefocusNotDetermined,
     EdgeObservation,
+    blur_model_warning,
     fit_defocus,
     jackknife_defocus,
     jackknife_warning,
@@ -431,12 +432,13 @@ def _paper_argmin(
 
 
 def _fit_warnings(fit: _SweepFit, grid: MlaGrid, g: SweepGeometry) -> list[str]:
-    """The warnings about the fit itself: rim-blurred shading, an unstable jackknife, an
-    implausible aperture scale."""
+    """The warnings about the fit itself: rim-blurred shading, an unstable jackknife, blur
+    models that disagree, an implausible aperture scale."""
     notes = []
     if grid.shading is not None and not grid.shading.interior_consistent:
         notes.append(rim_shading_warning(grid.shading))
     notes.append(jackknife_warning(fit.defocus, g.lens_pitch_px) or "")
+    notes.append(blur_model_warning(fit.defocus) or "")
     notes.append(aperture_scale_warning(fit.defocus.kappa) or "")
     return [n for n in notes if n]
 

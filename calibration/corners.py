@@ -73,6 +73,8 @@ class CornerOptions:
     reference corner's gap as :func:`measure_corners` is told) by more than this is
     rejected: not a corner, or two different edges."""
     blur_clearance_px: float = 3.0
+    """Least distance (px) of an edge-spread profile from its corner along the edge; more
+    for blurred edges (:func:`calibration.edge_spread.corner_clearance_px`)."""
     blur_radius_fraction: float = 0.7
     profile_core_half_px: int = 2
     """A corner's edge profile (all of it within the micro-image interior) leaves its samples

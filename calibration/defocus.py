@@ -82,6 +82,7 @@ __all__ = [
     "EdgeObservation",
     "fit_defocus",
     "jackknife_defocus",
+    "blur_model_warning",
     "jackknife_warning",
     "one_corner",
     "rough_focus",
@@ -500,6 +501,24 @@ def jackknife_warning(fit: DefocusFit, lens_pitch_px: float) -> str | None:
         f"{fit.Q0_se_jackknife:.2g} against the blur model's ±{fit.Q0_se_model:.2g}): the "
         "edges depart from the blur model differently along the sweep, and the focus "
         "plane's uncertainty is the jackknife's"
+    )
+
+
+def blur_model_warning(fit: DefocusFit) -> str | None:
+    """A warning when the two blur models disagree on ``Q0`` by more than its statistical
+    uncertainty (``Q0_se_kernel`` above the curvature's and the clusters'): the sweep stays
+    where the edges barely widen, and which physics forms them decides the focus plane."""
+    statistical = max(fit.Q0_se_curvature, fit.Q0_se_cluster)
+    if not fit.Q0_se_kernel > statistical:
+        return None
+    taken = "wave-optical" if fit.diffraction_px > 0.0 else "geometric"
+    other = "geometric" if fit.diffraction_px > 0.0 else "wave-optical"
+    return (
+        f"the {taken} blur model (taken) and the {other} one put the focus plane's Q0 at "
+        f"{fit.Q0:.5f} and {fit.Q0_other_kernel:.5f}, {fit.Q0_se_kernel:.1g} apart against "
+        f"±{statistical:.1g} from the data: the edges widen too little over the sweep to tell "
+        "the microlenses' diffraction from their defocus, and the focus plane's uncertainty "
+        "includes the difference; a sweep reaching farther from the focus plane decides it"
     )
 
 

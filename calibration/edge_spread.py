@@ -441,6 +441,19 @@ def flat_distance(width_px: float) -> float:
     return float(np.clip(FLAT_SIGMAS * sigma + FLAT_MARGIN_PX, lo, hi))
 
 
+def corner_clearance_px(width_px: float, *, minimum_px: float) -> float:
+    """Least distance (px) from the corner, along an edge, of a profile across it: the
+    edges' :func:`flat_distance`, at least ``minimum_px``.
+
+    The corner's other edge is blurred as this one is; within its flat distance its blur
+    reaches into the profile (a defocus disk, a diffraction pattern's lobes), and its
+    light is then not a level the profile's tails can take. A fixed 3 px was less than a
+    diffraction-limited microlens's first zero (3.4 px at f/15.6) and than the defocus
+    disk's radius of most blurred frames.
+    """
+    return max(minimum_px, flat_distance(width_px))
+
+
 def profile_half_px(width_px: float, *, minimum: int, maximum: int) -> int:
     """Half length (samples) of the profiles cut across a frame's edges: twice
     :func:`flat_distance` of the edges' width plus ``TAIL_SAMPLES`` (tails as long as the

@@ -33,7 +33,13 @@ from .corners import (
     measure_corners,
 )
 from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
-from .edge_spread import TAIL_SAMPLES, BinnedEsf, flat_distance, frame_esf, profile_half_px
+from .edge_spread import (
+    TAIL_SAMPLES,
+    BinnedEsf,
+    corner_clearance_px,
+    frame_esf,
+    profile_half_px,
+)
 from .lens_grid import LensGrid
 from .main_image import CORNER_SE_FLOOR_PX
 from .optics import image_distance
@@ -444,7 +450,7 @@ def _edge_spread(
     )
     window = ProfileWindow(
         plateau_px=plateau_px,
-        clearance_px=max(opts.blur_clearance_px, flat_distance(fit.edge_width_px)),
+        clearance_px=corner_clearance_px(fit.edge_width_px, minimum_px=opts.blur_clearance_px),
         reach_px=REACH_FRACTION * ctx.board.square_mm * px_per_board_mm,
         half_px=half_px,
         flat_field=opts.flat_field,

@@ -19,7 +19,13 @@ import pytest
 from edge_shapes import fresnel_edge, sinc2_cdf
 from scipy.special import ndtr
 
-from calibration.defocus import DefocusNotDetermined, EdgeObservation, fit_defocus
+from calibration.defocus import (
+    DefocusNotDetermined,
+    EdgeObservation,
+    blur_model_warning,
+    fit_defocus,
+    one_corner,
+)
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 from calibration.result_notes import aperture_scale_warning
 
@@ -180,6 +186,10 @@ def test_exact_edge_spreads_give_q0_exactly(shape: dict) -> None:
     assert fit.Q0 == pytest.approx(q0, rel=2e-5)
     expected = 1.0 if shape["aperture"] == "square" else np.sqrt(12) / 4
     assert fit.kappa == pytest.approx(expected, rel=2e-3)
+    # edges formed the convolution's way: the wave-optical kernel is not even tried, so no
+    # disagreement between blur models enters the uncertainty
+    assert np.isnan(fit.Q0_other_kernel) and fit.Q0_se_kernel == 0.0
+    assert blur_model_warning(fit) is None
 
 
 def test_a_diffraction_limited_static_blur_with_long_tails_gives_q0() -> None:
@@ -199,6 +209,35 @@ def test_a_diffraction_limited_static_blur_with_long_tails_gives_q0() -> None:
     # the pattern convolved with the geometric blur (rays deflected by it) is geometric
     # optics with a static pattern: the wave-optical kernel is not taken
     assert fit.diffraction_px == 0.0
+
+
+def test_one_corner_is_fitted_throughout_the_sweep() -> None:
+    """The reference corner's half-edges are offset by the board's gap, so wherever a blur
+    reaches along an edge past the corner its function is not the standard corner's (here:
+    a static blur 0.1 px wider). When only the far part of the sweep shows it (its
+    micro-images enter the windows there), merging the two corners' functions per frame
+    changed their shape along the sweep as a defocus does, and put Q0 1.1 % off (15σ);
+    with the standard corner throughout, these exact functions give Q0 to 1e-5."""
+    q0, pitch = 0.3, 50.0
+    qs = q0 + np.linspace(-0.02, 0.03, 26)
+    standard = _exact_sweep(qs, pitch_px=pitch, q0=q0, static="gauss", sigma_px=0.5)
+    wider = _exact_sweep(qs, pitch_px=pitch, q0=q0, static="gauss", sigma_px=0.6)
+    reference = [replace(o, corner="reference") for o in wider if o.Q < q0 - 0.005]
+    fit = fit_defocus(standard + reference, lens_pitch_px=pitch)
+    assert fit.Q0 == pytest.approx(q0, rel=1e-5)
+    assert fit.frames == len(qs)
+
+
+def test_the_corner_seen_in_most_frames_is_the_one_fitted() -> None:
+    def obs(frame: int, corner: str) -> EdgeObservation:
+        return EdgeObservation(frame, corner, 0.3, _binned(lambda x: ndtr(x)))
+
+    standard = [obs(k, "standard") for k in (0, 1, 2)]
+    reference = [obs(k, "reference") for k in (1, 2, 3, 4)]
+    assert one_corner(standard + reference) == reference
+    # on a tie the standard corner (straight edges through the corner)
+    assert one_corner(standard + reference[:3]) == standard
+    assert one_corner([]) == []
 
 
 def _binned(curve) -> BinnedEsf:
@@ -234,6 +273,18 @@ def test_wave_optical_edges_give_q0_and_the_diffraction_scale(s_px: float, arm: 
     assert fit.diffraction_px == pytest.approx(s_px, rel=0.03)
     assert fit.kappa == pytest.approx(1.0, abs=0.03)
     assert aperture_scale_warning(fit.kappa) is None
+    # geometric optics was fitted too and put Q0 elsewhere (by the amounts above): that
+    # disagreement is part of the uncertainty, whichever model is taken
+    assert abs(fit.Q0_other_kernel - q0) > 1e-4 * q0
+    assert fit.Q0_se_kernel == pytest.approx(abs(fit.Q0 - fit.Q0_other_kernel), rel=1e-12)
+    assert fit.Q0_se >= fit.Q0_se_kernel
+    # where the two models disagree by more than the data's uncertainty (a sweep starting
+    # near its focus plane), the result says so; on the symmetric sweep they agree
+    warning = blur_model_warning(fit)
+    if arm == "near":
+        assert "wave-optical blur model (taken)" in (warning or "")
+    else:
+        assert warning is None
 
 
 def test_wave_optical_edges_sampled_at_a_few_sub_pixel_phases_give_q0() -> None:

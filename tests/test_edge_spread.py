@@ -13,7 +13,13 @@ import pytest
 from edge_shapes import sinc2_cdf
 from scipy.special import ndtr
 
-from calibration.edge_spread import ESF_BIN_PX, BinnedEsf, EdgeProfiles, frame_esf
+from calibration.edge_spread import (
+    ESF_BIN_PX,
+    BinnedEsf,
+    EdgeProfiles,
+    corner_clearance_px,
+    frame_esf,
+)
 
 
 def _truth(x: np.ndarray) -> np.ndarray:
@@ -148,3 +154,36 @@ def test_profiles_in_unlit_parts_of_the_frame_are_dropped() -> None:
     np.testing.assert_allclose(esf.value[inside], _truth(esf.x[inside]), atol=0.006)
     # no bin is made of the unlit profiles' samples (phase 0.63)
     assert not np.any(np.isclose((esf.x + 6) % 1.0, 0.63, atol=0.01))
+
+
+def _corner_profile(x: np.ndarray, along_px: float, radius_px: float) -> np.ndarray:
+    """Across the vertical edge of a checkerboard corner (bright where x·y > 0) at
+    ``along_px`` from the corner, blurred by a uniform disk of radius ``radius_px``."""
+    g = (np.arange(160) + 0.5) / 160 * 2.0 - 1.0
+    px, py = np.meshgrid(g * radius_px, g * radius_px)
+    inside = px**2 + py**2 <= radius_px**2
+    px, py = px[inside], py[inside]
+    u, v = x[:, None] - px[None, :], along_px - py[None, :]
+    return np.mean(u * v > 0, axis=1)
+
+
+@pytest.mark.parametrize("radius_px", [2.0, 4.0])
+def test_profiles_clear_of_the_corner_see_one_edge_only(radius_px: float) -> None:
+    """A defocus disk is not separable: within its radius of the corner a profile across
+    one edge also sees the other, and is not the edge's step response. At the clearance
+    (the edges' flat distance for the disk's width, radius/2) it is, up to its levels; a
+    fixed 3 px was not, for a disk of 8 px."""
+    x = np.linspace(-8.0, 8.0, 161)
+    step = _corner_profile(x, 40.0, radius_px)  # far along the edge: one edge only
+
+    def misfit(along_px: float) -> float:
+        profile = _corner_profile(x, along_px, radius_px)
+        design = np.stack([np.ones_like(step), step], axis=1)
+        coef, *_ = np.linalg.lstsq(design, profile, rcond=None)
+        return float(np.max(np.abs(design @ coef - profile)) / abs(coef[1]))
+
+    clearance = corner_clearance_px(radius_px / 2.0, minimum_px=3.0)
+    assert clearance > radius_px
+    assert misfit(clearance) < 1e-9
+    if radius_px > 3.0:
+        assert misfit(3.0) > 0.01
