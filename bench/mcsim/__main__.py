@@ -13,10 +13,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bench.mcsim.camera import OpticsError
 from bench.mcsim.presets import DEFAULT_PRESET, PRESETS
-from bench.mcsim.spec import build_spec
-from bench.mcsim.sweep import ARCHIVE_ENTRIES, COMPLETE, clear_archive, render_sweep
+from bench.mcsim.render_cli import render_main
+from bench.mcsim.spec import SweepSpec, build_spec
+from bench.mcsim.sweep import render_sweep
 
 
 def _floats(count: int) -> Any:
@@ -151,44 +151,15 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = vars(parser().parse_args(argv))
-    out_dir: Path = args.pop("out_dir")
-    force: bool = args.pop("force")
-    jobs: int = args.pop("jobs")
-    try:
-        spec = build_spec(**args)
-    except OpticsError as exc:
-        print(f"mcsim: error: {exc}", file=sys.stderr)
-        return 2
-    if jobs < 1:
-        print("mcsim: error: --jobs must be >= 1", file=sys.stderr)
-        return 2
-    if out_dir.exists() and any(out_dir.iterdir()):
-        foreign = sorted(
-            p.name for p in out_dir.iterdir() if p.name not in (*ARCHIVE_ENTRIES, COMPLETE)
-        )
-        if foreign or not force:
-            what = (
-                f"holds {', '.join(foreign)}"
-                if foreign
-                else "holds a previous render (use --force)"
-            )
-            print(f"mcsim: error: {out_dir} {what}", file=sys.stderr)
-            return 1
-        clear_archive(out_dir)
-    try:
-        log = render_sweep(
-            spec, out_dir, jobs, progress=lambda line: print(line, file=sys.stderr, flush=True)
-        )
-    except OSError as exc:
-        print(f"mcsim: error: writing {out_dir}: {exc}", file=sys.stderr)
-        return 1
-    print(
-        f"{out_dir}: {spec.rail.frames} frames {spec.camera.width}x{spec.camera.height}, "
+    return render_main("mcsim", vars(parser().parse_args(argv)), build_spec, render_sweep, _summary)
+
+
+def _summary(spec: SweepSpec, log: dict[str, Any]) -> str:
+    return (
+        f"{spec.rail.frames} frames {spec.camera.width}x{spec.camera.height}, "
         f"{log['wall_seconds']:.1f} s wall, {log['cpu_seconds_per_frame']:.2f} CPU-s/frame, "
         f"{log['frames_rays_per_cpu_second'] / 1e6:.1f} M rays/CPU-s"
     )
-    return 0
 
 
 if __name__ == "__main__":

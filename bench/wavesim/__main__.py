@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from bench.mcsim.__main__ import _floats
-from bench.mcsim.camera import OpticsError
 from bench.mcsim.presets import DEFAULT_PRESET, PRESETS
-from bench.wavesim.settings import build_wave_spec
-from bench.wavesim.sweep import ARCHIVE_ENTRIES, COMPLETE, clear_archive, render_sweep
+from bench.mcsim.render_cli import render_main
+from bench.wavesim.settings import WaveSpec, build_wave_spec
+from bench.wavesim.sweep import render_sweep
 
 
 def _wavelengths(text: str) -> tuple[float, ...]:
@@ -100,43 +100,15 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args: dict[str, Any] = vars(parser().parse_args(argv))
-    out_dir: Path = args.pop("out_dir")
-    force: bool = args.pop("force")
-    jobs: int = args.pop("jobs")
-    try:
-        ws = build_wave_spec(**args)
-    except OpticsError as exc:
-        print(f"wavesim: error: {exc}", file=sys.stderr)
-        return 2
-    if jobs < 1:
-        print("wavesim: error: --jobs must be >= 1", file=sys.stderr)
-        return 2
-    if out_dir.exists() and any(out_dir.iterdir()):
-        foreign = sorted(
-            p.name for p in out_dir.iterdir() if p.name not in (*ARCHIVE_ENTRIES, COMPLETE)
-        )
-        if foreign or not force:
-            what = (
-                f"holds {', '.join(foreign)}"
-                if foreign
-                else "holds a previous render (use --force)"
-            )
-            print(f"wavesim: error: {out_dir} {what}", file=sys.stderr)
-            return 1
-        clear_archive(out_dir)
-    try:
-        log = render_sweep(
-            ws, out_dir, jobs, progress=lambda line: print(line, file=sys.stderr, flush=True)
-        )
-    except OSError as exc:
-        print(f"wavesim: error: writing {out_dir}: {exc}", file=sys.stderr)
-        return 1
+    return render_main("wavesim", args, build_wave_spec, render_sweep, _summary)
+
+
+def _summary(ws: WaveSpec, log: dict[str, Any]) -> str:
     cam = ws.sweep.camera
-    print(
-        f"{out_dir}: {ws.sweep.rail.frames} frames {cam.width}x{cam.height}, "
+    return (
+        f"{ws.sweep.rail.frames} frames {cam.width}x{cam.height}, "
         f"{log['wall_seconds']:.1f} s wall, {log['cpu_seconds_per_frame']:.2f} CPU-s/frame"
     )
-    return 0
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -29,8 +28,6 @@ from bench.wavesim.settings import WaveSpec, build_wave_spec, split_options
 GENERATOR = "wavesim"
 RENDERER_VERSION = 1
 CACHE_ROOT = Path(__file__).resolve().parents[2] / "out" / "bench" / "wavesim"
-COMPLETE = ".complete"
-ARCHIVE_ENTRIES = ("sweep.json", "truth.json", "render_log.json", "white.png", "frames")
 RAY_TRUTH_KEYS = (
     "rays_per_subpixel",
     "subpixels_per_axis",
@@ -119,16 +116,6 @@ def render_sweep(
     sweep["generator"] = GENERATOR
     write_json(out_dir / "sweep.json", sweep)
     return log
-
-
-def clear_archive(out_dir: Path) -> None:
-    """Remove what a previous render left in ``out_dir`` (only the archive's own entries)."""
-    for name in (*ARCHIVE_ENTRIES, COMPLETE):
-        path = out_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
 
 
 def _cache_key(options: dict[str, Any]) -> str:
