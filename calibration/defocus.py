@@ -80,9 +80,9 @@ __all__ = [
     "DefocusFit",
     "DefocusNotDetermined",
     "EdgeObservation",
+    "blur_model_warning",
     "fit_defocus",
     "jackknife_defocus",
-    "blur_model_warning",
     "jackknife_warning",
     "one_corner",
     "rough_focus",
@@ -112,9 +112,9 @@ uncertainty includes their disagreement, ``|Q0_geometric - Q0_wave|`` in quadrat
 (``DefocusFit.Q0_se_kernel``): within the microlens's diffraction-limited depth of focus
 the edges widen by a few per cent of their width over a whole sweep, both models fit
 that to within their noise and the model floor, and the chi-square prefers one by
-chance of shape (on 20 Fourier-optics sweeps geometric optics won by 10-80 on most,
-with ``κ`` 0.3-0.4 and ``Q0`` up to 2 % off while the wave kernel's was within its
-uncertainty; their difference is what the data cannot settle). Where the edges are far
+chance of shape (on 19 Fourier-optics sweeps geometric optics was kept on 15, with ``κ``
+0.26-0.46 and ``Q0`` up to 1.9 % off, while the wave kernel's was within 1.1σ on all;
+their difference is what the data cannot settle). Where the edges are far
 from diffraction-limited the wave kernel is not tried and the term is zero."""
 
 WAVE_TRIAL_COST_RATIO = 2.0
@@ -511,8 +511,8 @@ def blur_model_warning(fit: DefocusFit) -> str | None:
     statistical = max(fit.Q0_se_curvature, fit.Q0_se_cluster)
     if not fit.Q0_se_kernel > statistical:
         return None
-    taken = "wave-optical" if fit.diffraction_px > 0.0 else "geometric"
-    other = "geometric" if fit.diffraction_px > 0.0 else "wave-optical"
+    models = ("wave-optical", "geometric")
+    taken, other = models if fit.diffraction_px > 0.0 else models[::-1]
     return (
         f"the {taken} blur model (taken) and the {other} one put the focus plane's Q0 at "
         f"{fit.Q0:.5f} and {fit.Q0_other_kernel:.5f}, {fit.Q0_se_kernel:.1g} apart against "
@@ -534,7 +534,7 @@ def one_corner(observations: Sequence[EdgeObservation]) -> list[EdgeObservation]
     straight through it. Where the share of one corner changes along the sweep (its
     micro-images enter or leave the windows), merging them changes the function's shape
     with ``Q`` as a defocus would: on wave-optical sweeps whose far half alone showed
-    the reference corner, the wave-optical fit put ``Q0`` 0.3 % low on average (1.2σ, 16
+    the reference corner, the wave-optical fit put ``Q0`` 0.3 % low on average (1.2σ, 15
     of 16 seeds low); with the standard corner alone, 0.03 %. So one corner is used
     throughout, and frames without it are left out of the defocus fit.
     """

@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from bench.mcsim.archive import (
     frame_file,
@@ -25,6 +25,7 @@ from bench.mcsim.spec import SweepSpec, build_spec, merged_options
 
 RENDERER_VERSION = 1
 CACHE_ROOT = Path(__file__).resolve().parents[2] / "out" / "bench" / "mcsim"
+Spec = TypeVar("Spec")
 COMPLETE = ".complete"
 ARCHIVE_ENTRIES = ("sweep.json", "truth.json", "render_log.json", "white.png", "frames")
 
@@ -114,22 +115,23 @@ def cached_sweep(name: str, jobs: int | None = None, **options: Any) -> Path:
     renders again. ``jobs`` defaults to the number of CPUs.
     """
     return cached_render(
-        CACHE_ROOT,
-        name,
-        _cache_key(options),
-        lambda tmp: render_sweep(
-            build_spec(**options),
-            tmp,
-            jobs=jobs or os.cpu_count() or 1,
-            progress=lambda line: print(f"mcsim {name}: {line}", file=sys.stderr, flush=True),
-        ),
+        CACHE_ROOT, name, _cache_key(options), lambda: build_spec(**options), render_sweep, jobs
     )
 
 
-def cached_render(root: Path, name: str, key: str, render: Callable[[Path], object]) -> Path:
-    """``root/<name>/`` rendered by ``render(directory)`` unless its ``.complete`` marker
-    already holds ``key``: rendered into a temporary directory, the marker written last,
-    then moved into place (a concurrent render of the same key wins harmlessly)."""
+def cached_render(
+    root: Path,
+    name: str,
+    key: str,
+    build: Callable[[], Spec],
+    render: Callable[..., object],
+    jobs: int | None,
+) -> Path:
+    """``root/<name>/`` rendered by ``render(build(), directory, jobs=…, progress=…)`` (the
+    renderer's ``render_sweep``; ``jobs`` defaults to the number of CPUs, progress lines go
+    to stderr prefixed with the root's and the sweep's names) unless its ``.complete``
+    marker already holds ``key``: rendered into a temporary directory, the marker written
+    last, then moved into place (a concurrent render of the same key wins harmlessly)."""
     target = root / name
     marker = target / COMPLETE
     if marker.exists() and marker.read_text() == key:
@@ -139,7 +141,12 @@ def cached_render(root: Path, name: str, key: str, render: Callable[[Path], obje
     if tmp.exists():
         shutil.rmtree(tmp)
     try:
-        render(tmp)
+        render(
+            build(),
+            tmp,
+            jobs=jobs or os.cpu_count() or 1,
+            progress=lambda line: print(f"{root.name} {name}: {line}", file=sys.stderr, flush=True),
+        )
         (tmp / COMPLETE).write_text(key)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

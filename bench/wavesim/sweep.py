@@ -9,8 +9,6 @@ and wavesim's own ``render_log.json``.
 from __future__ import annotations
 
 import json
-import os
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -137,10 +135,7 @@ def cached_sweep(name: str, jobs: int | None = None, **options: Any) -> Path:
         CACHE_ROOT,
         name,
         _cache_key(options),
-        lambda tmp: render_sweep(
-            build_wave_spec(**options),
-            tmp,
-            jobs=jobs or os.cpu_count() or 1,
-            progress=lambda line: print(f"wavesim {name}: {line}", file=sys.stderr, flush=True),
-        ),
+        lambda: build_wave_spec(**options),
+        render_sweep,
+        jobs,
     )
