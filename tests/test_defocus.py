@@ -24,7 +24,7 @@ from calibration.defocus import (
     EdgeObservation,
     blur_model_warning,
     fit_defocus,
-    one_corner,
+    sweep_corners,
 )
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 from calibration.result_notes import aperture_scale_warning
@@ -211,7 +211,7 @@ def test_a_diffraction_limited_static_blur_with_long_tails_gives_q0() -> None:
     assert fit.diffraction_px == 0.0
 
 
-def test_one_corner_is_fitted_throughout_the_sweep() -> None:
+def test_one_corner_is_fitted_throughout_the_sweep_when_the_other_is_seen_in_part() -> None:
     """The reference corner's half-edges are offset by the board's gap, so wherever a blur
     reaches along an edge past the corner its function is not the standard corner's (here:
     a static blur 0.1 px wider). When only the far part of the sweep shows it (its
@@ -228,16 +228,40 @@ def test_one_corner_is_fitted_throughout_the_sweep() -> None:
     assert fit.frames == len(qs)
 
 
+def test_corners_seen_in_every_frame_are_merged_each_centred_on_its_edge() -> None:
+    """Both corners in every frame: their functions are merged (the same mixture along the
+    sweep, which the static kernel takes up), each centred on its own edge first: the
+    reference corner's lattice puts its edge up to 0.3 px off, differently in each frame
+    (uncentred, the merged functions widen by a different amount in each frame: Q0 off by
+    0.1 % here), and its static blur is 0.1 px wider."""
+    q0, pitch = 0.3, 50.0
+    qs = q0 + np.linspace(-0.02, 0.03, 26)
+    standard = _exact_sweep(qs, pitch_px=pitch, q0=q0, static="gauss", sigma_px=0.5)
+    wider = _exact_sweep(qs, pitch_px=pitch, q0=q0, static="gauss", sigma_px=0.6)
+    offsets = np.random.default_rng(3).uniform(-0.3, 0.3, len(qs))
+    reference = [
+        replace(o, corner="reference", esf=o.esf.shifted(float(dx)))
+        for o, dx in zip(wider, offsets, strict=True)
+    ]
+    merged = sweep_corners(standard + reference)
+    assert [o.corner for o in merged] == ["both"] * len(qs)
+    assert [o.esf.profiles for o in merged] == [400] * len(qs)
+    fit = fit_defocus(standard + reference, lens_pitch_px=pitch)
+    assert fit.Q0 == pytest.approx(q0, rel=1e-4)
+    assert fit.frames == len(qs)
+
+
 def test_the_corner_seen_in_most_frames_is_the_one_fitted() -> None:
     def obs(frame: int, corner: str) -> EdgeObservation:
         return EdgeObservation(frame, corner, 0.3, _binned(lambda x: ndtr(x)))
 
     standard = [obs(k, "standard") for k in (0, 1, 2)]
     reference = [obs(k, "reference") for k in (1, 2, 3, 4)]
-    assert one_corner(standard + reference) == reference
+    assert sweep_corners(standard + reference) == reference
     # on a tie the standard corner (straight edges through the corner)
-    assert one_corner(standard + reference[:3]) == standard
-    assert one_corner([]) == []
+    assert sweep_corners(standard + reference[:3]) == standard
+    assert sweep_corners(standard[:1]) == standard[:1]
+    assert sweep_corners([]) == []
 
 
 def _binned(curve) -> BinnedEsf:
