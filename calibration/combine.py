@@ -183,6 +183,7 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
         "Q0_se_model": d.Q0_se_model,
         "Q0_se_kernel": d.Q0_se_kernel,
         "Q0_other_kernel": d.Q0_other_kernel,
+        "corners": d.corners,
         "Q0_se_jackknife": d.Q0_se_jackknife,
         "jackknife_Q0": list(d.jackknife_Q0),
         "jackknife_consistent": d.jackknife_consistent,

@@ -187,6 +187,9 @@ class DefocusFit:
     Q0_other_kernel: float = float("nan")
     """``Q0`` of the blur model not taken (geometric or wave-optical); NaN when the
     wave-optical one was not tried (edges far from diffraction-limited)."""
+    corners: str = ""
+    """Whose edge-spread functions were fitted (:func:`sweep_corners`): ``both`` (merged in
+    every frame), ``standard`` or ``reference`` (that corner alone throughout)."""
 
     def blur_diameter_px(
         self, Q: float | NDArray[np.float64], lens_pitch_px: float
@@ -297,6 +300,7 @@ def fit_defocus(
         Q0_se_systematic=q0_systematic,
         Q0_se_kernel=q0_kernel,
         Q0_other_kernel=other_q0,
+        corners=obs[0].corner,
         kappa=float(theta[1]),
         shape_box=float(theta[2]),
         diffraction_px=float(theta[3]),

@@ -35,6 +35,8 @@ def test_the_ray_traced_sweep_is_calibrated_within_twice_the_targets(sweep: Path
     result, truth = calibrate(sweep)
     check_accuracy(result, truth)
     assert result["corners_found"]["reference_frames"] > 25
+    # the result says whose edge spreads located the focus plane (item 5i)
+    assert result["focus"]["defocus_model"]["corners"] in {"both", "standard", "reference"}
     assert all(p["determined_by"] == "sweep" for k, p in result["priors"].items() if k != "L_mm")
 
 

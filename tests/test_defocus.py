@@ -226,6 +226,7 @@ def test_one_corner_is_fitted_throughout_the_sweep_when_the_other_is_seen_in_par
     fit = fit_defocus(standard + reference, lens_pitch_px=pitch)
     assert fit.Q0 == pytest.approx(q0, rel=1e-5)
     assert fit.frames == len(qs)
+    assert fit.corners == "standard"
 
 
 def test_corners_seen_in_every_frame_are_merged_each_centred_on_its_edge() -> None:
@@ -249,6 +250,7 @@ def test_corners_seen_in_every_frame_are_merged_each_centred_on_its_edge() -> No
     fit = fit_defocus(standard + reference, lens_pitch_px=pitch)
     assert fit.Q0 == pytest.approx(q0, rel=1e-4)
     assert fit.frames == len(qs)
+    assert fit.corners == "both"
 
 
 def test_the_corner_seen_in_most_frames_is_the_one_fitted() -> None:
