@@ -31,3 +31,13 @@ def test_a_small_cluster_joins_its_cheaper_neighbour() -> None:
     values = np.concatenate([np.zeros(20), np.full(3, 10.5), np.full(20, 100.0)])
     labels = cluster_on_line(values, max_groups=6, min_size=8)
     assert_array_equal(labels, np.repeat([0, 0, 1], [20, 3, 20]))
+
+
+def test_the_cheapest_pair_joins_first_and_the_leftmost_on_a_tie() -> None:
+    # gaps 1, 1, 1, 5, 1: the three unit gaps tie (equal weights), so they join from the
+    # left; a cost recomputed only where a join happened must still see the merged
+    # cluster's larger cost (2 entries + 1 costs more than 1 + 1)
+    values = np.array([0.0, 1.0, 2.0, 3.0, 8.0, 9.0])
+    assert_array_equal(cluster_on_line(values, max_groups=5, min_size=1), [0, 0, 1, 2, 3, 4])
+    assert_array_equal(cluster_on_line(values, max_groups=3, min_size=1), [0, 0, 1, 1, 2, 2])
+    assert_array_equal(cluster_on_line(values, max_groups=2, min_size=1), [0, 0, 0, 0, 1, 1])
