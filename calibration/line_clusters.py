@@ -27,62 +27,59 @@ def cluster_on_line(
     """
     distinct, inverse = np.unique(values, return_inverse=True)
     per_value = np.bincount(inverse, minlength=distinct.size).astype(np.float64)
-    first = _join_cheapest(
+    sums = _Sums(
         per_value.tolist(),
         (per_value * distinct).tolist(),
         (per_value * distinct * distinct).tolist(),
-        max_groups,
     )
-    owner = np.cumsum(first) - 1  # cluster of each distinct value
-    n = np.bincount(owner, per_value)
-    s1 = np.bincount(owner, per_value * distinct)
-    s2 = np.bincount(owner, per_value * distinct * distinct)
-    while n.size > 1 and n.min() < min_size:  # few enough: only the small ones join
-        within = s2 - s1 * s1 / n
-        joined = s2[:-1] + s2[1:] - (s1[:-1] + s1[1:]) ** 2 / (n[:-1] + n[1:])
-        costs = joined - within[:-1] - within[1:]
-        small = int(np.flatnonzero(n < min_size)[0])
-        pairs = [j for j in (small - 1, small) if 0 <= j < n.size - 1]
-        k = min(pairs, key=lambda j: costs[j])
-        for arr in (n, s1, s2):
-            arr[k] += arr[k + 1]
-        n, s1, s2 = (np.delete(arr, k + 1) for arr in (n, s1, s2))
-        owner = np.where(owner > k, owner - 1, owner)
+    alive = _join_cheapest(sums, max_groups)
+    _join_small(sums, alive, min_size)
+    owner = np.cumsum(alive) - 1  # cluster of each distinct value
     return np.asarray(owner[inverse], dtype=np.int64)
 
 
-def _join_cheapest(
-    n: list[float], s1: list[float], s2: list[float], max_groups: int
-) -> NDArray[np.bool_]:
-    """Join neighbouring clusters (counts ``n``, sums ``s1`` and ``s2`` of the values and
-    their squares, in order of value) the cheapest pair first until at most ``max_groups``
-    are left; returns which entries start a cluster. A heap of the pairs' costs keyed by
-    their left cluster, stale entries skipped: each join changes only its two neighbouring
-    pairs' costs."""
-    size = len(n)
-    right = list(range(1, size + 1))  # the next cluster's first entry (size: none)
-    left = list(range(-1, size - 1))
-    version = [0] * size
-    alive = [True] * size
+class _Sums:
+    """Per cluster, keyed by its first entry: the count ``n`` and the sums ``s1``, ``s2`` of
+    the values and their squares."""
 
-    def cost(a: int, b: int) -> float:
+    def __init__(self, n: list[float], s1: list[float], s2: list[float]) -> None:
+        self.n, self.s1, self.s2 = n, s1, s2
+
+    def cost(self, a: int, b: int) -> float:
+        """Ward's cost of joining clusters ``a`` and ``b``: the growth of the spread."""
+        n, s1, s2 = self.n, self.s1, self.s2
         within_a = s2[a] - s1[a] * s1[a] / n[a]
         within_b = s2[b] - s1[b] * s1[b] / n[b]
         total = s1[a] + s1[b]
         joined = s2[a] + s2[b] - total * total / (n[a] + n[b])
         return joined - within_a - within_b
 
-    heap = [(cost(a, a + 1), a, 0, 0) for a in range(size - 1)]
+    def join(self, a: int, b: int) -> None:
+        """Cluster ``b`` into ``a``."""
+        self.n[a] += self.n[b]
+        self.s1[a] += self.s1[b]
+        self.s2[a] += self.s2[b]
+
+
+def _join_cheapest(sums: _Sums, max_groups: int) -> list[bool]:
+    """Join neighbouring clusters (in order of value) the cheapest pair first until at most
+    ``max_groups`` are left; returns which entries still start a cluster. A heap of the
+    pairs' costs keyed by their left cluster, stale entries skipped: each join changes only
+    its two neighbouring pairs' costs."""
+    size = len(sums.n)
+    right = list(range(1, size + 1))  # the next cluster's first entry (size: none)
+    left = list(range(-1, size - 1))
+    version = [0] * size
+    alive = [True] * size
+    heap = [(sums.cost(a, a + 1), a, 0, 0) for a in range(size - 1)]
     heapq.heapify(heap)
     count = size
     while count > max_groups and heap:
-        c, a, va, vb = heapq.heappop(heap)
+        _, a, va, vb = heapq.heappop(heap)
         b = right[a]
         if not alive[a] or b >= size or version[a] != va or version[b] != vb:
             continue
-        n[a] += n[b]
-        s1[a] += s1[b]
-        s2[a] += s2[b]
+        sums.join(a, b)
         alive[b] = False
         right[a] = right[b]
         if right[a] < size:
@@ -91,8 +88,21 @@ def _join_cheapest(
         count -= 1
         if left[a] >= 0:
             p = left[a]
-            heapq.heappush(heap, (cost(p, a), p, version[p], version[a]))
+            heapq.heappush(heap, (sums.cost(p, a), p, version[p], version[a]))
         if right[a] < size:
             q = right[a]
-            heapq.heappush(heap, (cost(a, q), a, version[a], version[q]))
-    return np.array(alive, dtype=bool)
+            heapq.heappush(heap, (sums.cost(a, q), a, version[a], version[q]))
+    return alive
+
+
+def _join_small(sums: _Sums, alive: list[bool], min_size: int) -> None:
+    """Join each cluster smaller than ``min_size`` (the leftmost first) to the cheaper of its
+    two neighbours (the left one on a tie), while there are two clusters or more."""
+    ids = [i for i, a in enumerate(alive) if a]
+    while len(ids) > 1 and min(sums.n[i] for i in ids) < min_size:
+        small = next(j for j, i in enumerate(ids) if sums.n[i] < min_size)
+        pairs = [j for j in (small - 1, small) if 0 <= j < len(ids) - 1]
+        k = min(pairs, key=lambda j: sums.cost(ids[j], ids[j + 1]))
+        sums.join(ids[k], ids[k + 1])
+        alive[ids[k + 1]] = False
+        del ids[k + 1]
