@@ -138,6 +138,11 @@ JACKKNIFE_THREADS = 2
 """The jackknife's refits run on this many threads (numpy releases the GIL in most of a
 refit's array work)."""
 
+FIT_THREADS = 2
+"""The whole-sweep fit's evaluations run on this many threads, each on a contiguous block
+of the observations (:class:`DefocusProblem`'s ``blocks``; the jackknife's refits, already
+parallel, run their evaluations in one block)."""
+
 JACKKNIFE_FALSE_ALARM = 0.01
 """Probability that a sweep the blur model describes is called inconsistent by the
 jackknife: each block's shift of ``Q0`` is tested at ``JACKKNIFE_FALSE_ALARM/G`` (two-sided,
@@ -237,7 +242,20 @@ def fit_defocus(
             f"edge-spread functions in only {len(frames)} frames (need 5): the focus plane "
             "cannot be located"
         )
-    prob = DefocusProblem(obs, lens_pitch_px)
+    with ThreadPoolExecutor(FIT_THREADS) as pool:
+        prob = DefocusProblem(obs, lens_pitch_px, pool=pool, blocks=FIT_THREADS)
+        return _fit_problem(prob, lens_pitch_px, min_blur_px, start)
+
+
+def _fit_problem(
+    prob: DefocusProblem,
+    lens_pitch_px: float,
+    min_blur_px: float,
+    start: tuple[float, float, float, float] | None,
+) -> DefocusFit:
+    """:func:`fit_defocus` of the problem built from its usable observations."""
+    obs = prob.obs
+    frames = sorted({o.frame for o in obs})
     rows = np.arange(len(obs))
     q_lo, q_hi = float(prob.q.min()), float(prob.q.max())
     q_bounds = _q_bounds(prob.q)

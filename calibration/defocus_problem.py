@@ -13,8 +13,10 @@ covariances. Positions in pixels along the edge normal, ``Q`` dimensionless.
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +60,8 @@ model's limit (thin lenses, a uniform aperture); keeps a few noiseless bins from
 
 SMOOTHNESS = 1e-7
 """Weight of the second-difference penalty on the static kernel (relative to the data)."""
+
+_T = TypeVar("_T")
 
 KAPPA_MAX = 1.0
 """Upper bound of the aperture's RMS scale ``κ``: the square cell of side ``D``
@@ -164,9 +168,21 @@ class DefocusProblem:
 
     LATTICE_PX = 0.005
 
-    def __init__(self, obs: Sequence[EdgeObservation], lens_pitch_px: float) -> None:
+    def __init__(
+        self,
+        obs: Sequence[EdgeObservation],
+        lens_pitch_px: float,
+        *,
+        pool: Executor | None = None,
+        blocks: int = 1,
+    ) -> None:
+        """``pool`` and ``blocks``: each evaluation's per-observation work (the kernels'
+        lattices, the design's interpolation, the normal equations) is cut into ``blocks``
+        contiguous runs of observations, run on ``pool`` (threads: numpy releases the GIL
+        for these array operations); the result is the same as in one block."""
         self.obs = list(obs)
         self.pitch = lens_pitch_px
+        self.pool = pool
         h = STATIC_STEP_PX
         n_bins = int(round(2 * FIT_HALF_PX / ESF_BIN_PX))
         n_cells = int(round(STATIC_HALF_PX / h)) + 1
@@ -212,6 +228,7 @@ class DefocusProblem:
             self.index.append((row_start + j).astype(np.intp).ravel())
             self.frac.append((t - j).ravel().astype(np.float32))
         self.shape = (n, n_bins, n_cells)
+        self._set_blocks(blocks if pool is not None else 1)
         self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
         ramp = np.maximum(self.lattice, 0.0)
         # what spreading the nodes (:func:`_node_spread`) adds to the ramp max(t, 0)
@@ -230,32 +247,65 @@ class DefocusProblem:
         self.penalty = second.T @ second
         self.data_scale = float(np.mean(np.sum(self.w**2, axis=1)))
 
-    def _geometric_rest(self, d: NDArray[np.float64], alpha: float) -> NDArray[np.float64]:
-        """``∫C - max(t, 0)`` on the lattice of the geometric aperture at diameters ``d``, each
-        observation's placement jitter averaged over (Gauss-Hermite, where not negligible)."""
+    def _set_blocks(self, blocks: int) -> None:
+        """Cut the observations into ``blocks`` contiguous runs; each run's lattice indices
+        relative to its own first row (views of the whole arrays for a single run)."""
+        n, n_bins, n_cells = self.shape
+        bounds = np.linspace(0, n, max(1, min(blocks, n)) + 1).round().astype(int)
+        self.blocks = [
+            slice(int(k0), int(k1)) for k0, k1 in zip(bounds[:-1], bounds[1:], strict=True)
+        ]
+        per_row = n_bins * n_cells
+        self.block_index = [
+            [j[b.start * per_row : b.stop * per_row] - b.start * self.n_lattice for j in self.index]
+            if b.start
+            else [j[: b.stop * per_row] for j in self.index]
+            for b in self.blocks
+        ]
+
+    def _map(self, work: Callable[[int], _T]) -> list[_T]:
+        """``work(k)`` of every block ``k``, on the pool when there is one."""
+        if self.pool is None or len(self.blocks) == 1:
+            return [work(k) for k in range(len(self.blocks))]
+        return list(self.pool.map(work, range(len(self.blocks))))
+
+    def _geometric_rest(
+        self, d: NDArray[np.float64], alpha: float, rows: slice = slice(None)
+    ) -> NDArray[np.float64]:
+        """``∫C - max(t, 0)`` on the lattice of the geometric aperture at diameters ``d`` (of
+        the observations ``rows``), each observation's placement jitter averaged over
+        (Gauss-Hermite, where not negligible)."""
         t = self.lattice[None, :]
         integral = _aperture_integral(t, d[:, None], alpha)
-        jittered = np.flatnonzero(self.jitter > JITTER_NEGLIGIBLE_PX)
+        jitter = self.jitter[rows]
+        jittered = np.flatnonzero(jitter > JITTER_NEGLIGIBLE_PX)
         if jittered.size:
             dj = d[jittered, None]
             smooth = np.zeros((jittered.size, self.lattice.size))
             for node, weight in zip(*_JITTER_NODES, strict=True):
-                smooth += weight * _aperture_integral(
-                    t + node * self.jitter[jittered, None], dj, alpha
-                )
+                smooth += weight * _aperture_integral(t + node * jitter[jittered, None], dj, alpha)
             integral[jittered] = smooth
         integral -= np.maximum(t, 0.0)
         return integral
 
-    def _wave_rest(self, d: NDArray[np.float64], alpha: float, s: float) -> NDArray[np.float64]:
+    def _wave_rest(
+        self, d: NDArray[np.float64], alpha: float, s: float, rows: slice = slice(None)
+    ) -> NDArray[np.float64]:
         """The same for the effective defocus kernel of diffraction scale ``s`` px
         (:mod:`calibration.wave_defocus`; its jitter exactly, as a Gaussian factor)."""
         jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
         if not jitter.any():
             return defocus_integral_rest(self.lattice, d, s, alpha)
-        if self._ramp_rest is None:  # the same at every evaluation
+        rest = defocus_integral_rest(self.lattice, d, s, alpha, jitter[rows])
+        return rest + self._jittered_ramp()[rows]
+
+    def _jittered_ramp(self) -> NDArray[np.float64]:
+        """The wave kernel's jittered ramp (:func:`jittered_ramp_rest`) of every observation,
+        made at its first use (the same at every evaluation)."""
+        if self._ramp_rest is None:
+            jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
             self._ramp_rest = jittered_ramp_rest(self.lattice, jitter)
-        return defocus_integral_rest(self.lattice, d, s, alpha, jitter) + self._ramp_rest
+        return self._ramp_rest
 
     def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
         """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``.
@@ -267,13 +317,27 @@ class DefocusProblem:
         d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
+        if s > 0.0 and np.any(self.jitter > JITTER_NEGLIGIBLE_PX):
+            self._jittered_ramp()  # made once, before the blocks share it
+        out = np.empty(self.shape)
+        self._map(lambda k: self._design_block(d, float(alpha), float(s), k, out))
+        return out
+
+    def _design_block(
+        self, d: NDArray[np.float64], alpha: float, s: float, block: int, out: NDArray[np.float64]
+    ) -> None:
+        """:meth:`design` of the observations of block ``block``, written into their rows of
+        ``out``."""
+        rows = self.blocks[block]
+        d = d[rows]
         if s >= WAVE_MIN_PX:
-            integral = self._wave_rest(d, alpha, float(s))
+            integral = self._wave_rest(d, alpha, s, rows)
         else:
-            integral = self._geometric_rest(d, alpha)
+            integral = self._geometric_rest(d, alpha, rows)
             if s > 0.0:
-                share = float(s) / WAVE_MIN_PX
-                integral = (1.0 - share) * integral + share * self._wave_rest(d, alpha, WAVE_MIN_PX)
+                share = s / WAVE_MIN_PX
+                wave = self._wave_rest(d, alpha, WAVE_MIN_PX, rows)
+                integral = (1.0 - share) * integral + share * wave
         # linear interpolation on the lattice from its values and forward differences, of the
         # part beyond the ramp (bounded: float32 keeps ~1e-8 of it where ∫C itself reaches
         # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
@@ -282,16 +346,20 @@ class DefocusProblem:
         flat = (spread + self.ramp_spread).ravel()
         step = np.zeros_like(flat)
         np.subtract(flat[1:], flat[:-1], out=step[:-1])
-        out = np.zeros(self.index[0].size, dtype=np.float32)
-        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), self.index, self.frac, strict=True):
+        index = self.block_index[block]
+        per_row = self.shape[1] * self.shape[2]
+        ends = [f[rows.start * per_row : rows.stop * per_row] for f in self.frac]
+        values = np.zeros(index[0].size, dtype=np.float32)
+        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), index, ends, strict=True):
             value = step.take(j)
             value *= f
             value += flat.take(j)
             if sign > 0:
-                out += value
+                values += value
             else:
-                out -= value
-        return np.add(out.reshape(self.shape) / self.norm, self.ramp)  # in float64
+                values -= value
+        shape = (rows.stop - rows.start, *self.shape[1:])
+        np.add(values.reshape(shape) / self.norm[rows], self.ramp[rows], out=out[rows])  # float64
 
     def without(self, dropped: NDArray[np.int64]) -> DefocusProblem:
         """The same problem with the observations at ``dropped`` left out (their data, noise
@@ -309,6 +377,8 @@ class DefocusProblem:
         sub.index = [(j.reshape(self.shape[0], -1)[keep] - shift).ravel() for j in self.index]
         sub.frac = [f.reshape(self.shape[0], -1)[keep].ravel() for f in self.frac]
         sub.shape = (keep.size, *self.shape[1:])
+        sub.pool = None
+        sub._set_blocks(1)
         sub.data_scale = float(np.mean(np.sum(sub.w_data**2, axis=1)))
         return sub
 
@@ -327,10 +397,16 @@ class DefocusProblem:
         """
         w2 = self.w[rows] ** 2
         v = self.v[rows]
-        aw = a * w2[:, :, None]
-        gram = np.matmul(a.transpose(0, 2, 1), aw)
-        atv = np.einsum("kbi,kb->ki", aw, v)
-        n_obs = rows.size
+        n_obs, n_bins, n_cells = a.shape
+        aw = np.empty_like(a)
+        gram = np.empty((n_obs, n_cells, n_cells))
+
+        def normal_equations(block: int) -> None:
+            b = self.blocks[block]
+            np.multiply(a[b], w2[b, :, None], out=aw[b])
+            np.matmul(a[b].transpose(0, 2, 1), aw[b], out=gram[b])
+
+        self._map(normal_equations)
         lam = SMOOTHNESS * self.data_scale * n_obs
         coef = np.zeros((n_obs, 3))
         coef[:, 1] = 1.0
@@ -340,9 +416,10 @@ class DefocusProblem:
         for _ in range(3):
             offset, gain = coef[:, 0], coef[:, 1]
             # s given the per-observation terms: normal equations and a sum-to-one row
-            lhs = np.einsum("k,kij->ij", gain * gain, gram) + lam * self.penalty
-            resid = offset[:, None] + extra
-            rhs = (gain[:, None] * (atv - np.einsum("kbi,kb->ki", aw, resid))).sum(axis=0)
+            lhs = (gain * gain) @ gram.reshape(n_obs, -1)
+            lhs = lhs.reshape(n_cells, n_cells) + lam * self.penalty
+            target = gain[:, None] * (v - offset[:, None] - extra)
+            rhs = target.ravel() @ aw.reshape(-1, n_cells)
             big = 1e3 * float(np.trace(lhs)) / lhs.shape[0]
             s = _nonnegative_solve(lhs + big, rhs + big)
             # per observation: offset, gain and shift by weighted least squares

@@ -10,10 +10,11 @@ one, and the jackknife must see it, say so and carry it.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
-from numpy.testing import assert_array_equal
+from numpy.testing import assert_allclose, assert_array_equal
 from scipy.stats import norm
 from test_defocus import LENS_PITCH_PX, Q0, Q_SWEEP, _esf
 
@@ -95,6 +96,30 @@ def test_a_sweep_too_short_for_blocks_is_left_alone() -> None:
     jack = jackknife_defocus(obs, fit, lens_pitch_px=LENS_PITCH_PX)
     assert jack is fit
     assert jack.jackknife_consistent is None and np.isnan(jack.Q0_se_jackknife)
+
+
+def test_blocks_of_observations_on_threads_give_the_residuals_of_one_block() -> None:
+    """An evaluation cut into contiguous blocks of observations on a thread pool (the
+    whole-sweep fit's) gives the residuals of the problem in one block: each block's rows of
+    the design read its own lattice rows, for the geometric, blended and wave-optical
+    kernels, with and without placement jitter; a jackknife's refit of it is one block."""
+    obs = [
+        replace(o, esf=replace(o.esf, jitter_px=0.05)) if k % 3 == 0 else o
+        for k, o in enumerate(_sweep(4))
+    ]
+    scales = np.linspace(1.0, 2.0, len(obs))
+    one = DefocusProblem(obs, LENS_PITCH_PX)
+    one.scale_noise(scales)
+    rows = np.arange(len(obs))
+    with ThreadPoolExecutor(2) as pool:
+        for blocks in (2, 3):
+            cut = DefocusProblem(obs, LENS_PITCH_PX, pool=pool, blocks=blocks)
+            cut.scale_noise(scales)
+            assert len(cut.blocks) == blocks
+            for theta in ([Q0, 0.9, 0.5, 0.0], [Q0 + 0.002, 0.6, 0.0, 0.3], [Q0, 1.0, 1.0, 2.5]):
+                t = np.array(theta)
+                assert_allclose(cut.residuals(t, rows), one.residuals(t, rows), rtol=0, atol=1e-9)
+        assert len(cut.without(np.array([0])).blocks) == 1
 
 
 def test_a_block_left_out_is_the_problem_built_without_it() -> None:
