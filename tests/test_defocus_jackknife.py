@@ -98,18 +98,25 @@ def test_a_sweep_too_short_for_blocks_is_left_alone() -> None:
     assert jack.jackknife_consistent is None and np.isnan(jack.Q0_se_jackknife)
 
 
+def _jittered_problem(seed: int) -> tuple[list[EdgeObservation], DefocusProblem]:
+    """A noisy sweep whose every third observation's edge is placed with a jitter the model
+    averages over, and its problem in one block with noise scales from 1 to 2."""
+    obs = [
+        replace(o, esf=replace(o.esf, jitter_px=0.05)) if k % 3 == 0 else o
+        for k, o in enumerate(_sweep(seed))
+    ]
+    problem = DefocusProblem(obs, LENS_PITCH_PX)
+    problem.scale_noise(np.linspace(1.0, 2.0, len(obs)))
+    return obs, problem
+
+
 def test_blocks_of_observations_on_threads_give_the_residuals_of_one_block() -> None:
     """An evaluation cut into contiguous blocks of observations on a thread pool (the
     whole-sweep fit's) gives the residuals of the problem in one block: each block's rows of
     the design read its own lattice rows, for the geometric, blended and wave-optical
     kernels, with and without placement jitter; a jackknife's refit of it is one block."""
-    obs = [
-        replace(o, esf=replace(o.esf, jitter_px=0.05)) if k % 3 == 0 else o
-        for k, o in enumerate(_sweep(4))
-    ]
-    scales = np.linspace(1.0, 2.0, len(obs))
-    one = DefocusProblem(obs, LENS_PITCH_PX)
-    one.scale_noise(scales)
+    obs, one = _jittered_problem(4)
+    scales = one.noise_scale
     rows = np.arange(len(obs))
     with ThreadPoolExecutor(2) as pool:
         for blocks in (2, 3):
@@ -126,14 +133,8 @@ def test_a_block_left_out_is_the_problem_built_without_it() -> None:
     """The jackknife's refits slice the full problem (:meth:`DefocusProblem.without`) instead
     of building it again: the same data, lattice rows and residuals as a problem built from
     the remaining observations, whatever noise scales the full one carries."""
-    # every third observation's edge placed with a jitter the model averages over
-    obs = [
-        replace(o, esf=replace(o.esf, jitter_px=0.05)) if k % 3 == 0 else o
-        for k, o in enumerate(_sweep(3))
-    ]
-    scales = np.linspace(1.0, 2.0, len(obs))
-    full = DefocusProblem(obs, LENS_PITCH_PX)
-    full.scale_noise(scales)
+    obs, full = _jittered_problem(3)
+    scales = full.noise_scale.copy()
     dropped = np.array([0, 5, 6, 24])
     keep = np.setdiff1d(np.arange(len(obs)), dropped)
     sub = full.without(dropped)
