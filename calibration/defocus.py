@@ -72,7 +72,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import norm
 
-from .defocus_problem import FIT_HALF_PX, DefocusProblem, EdgeObservation, diameter_factor
+from .defocus_design import FIT_HALF_PX, diameter_factor
+from .defocus_problem import DefocusProblem, EdgeObservation
 from .edge_spread import ESF_BIN_PX, BinnedEsf
 
 __all__ = [

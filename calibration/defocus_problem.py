@@ -1,58 +1,30 @@
-"""The numerical core of the whole-sweep defocus fit: the kernels and the linear sub-problems.
+"""The numerical core of the whole-sweep defocus fit: the data and the linear sub-problems.
 
 :mod:`calibration.defocus` fits the focus plane with it (see there for the model).
-Here are the closed-form integrals of the defocus kernels (a box, a uniform disk and
-their mixture), the stacked edge-spread data of every observation and
-:class:`DefocusProblem`: for given ``(Q0, κ, α)`` the static kernel and each
+Here are the stacked edge-spread data of every observation and
+:class:`DefocusProblem`: for given ``(Q0, κ, α, s)`` the design
+(:class:`calibration.defocus_design.DefocusDesign`), the static kernel and each
 observation's offset, gain and shift by (non-negative, regularised) least squares, the
 weighted residuals, the re-weighting by each observation's reduced chi-square and the
-nonlinear least squares over ``(Q0, κ, α)`` with its curvature and cluster-robust
+nonlinear least squares over ``(Q0, κ, α, s)`` with its curvature and cluster-robust
 covariances. Positions in pixels along the edge normal, ``Q`` dimensionless.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import uniform_filter1d
 from scipy.optimize import least_squares, nnls
 
 from .cluster_robust import clustered_meat
+from .defocus_design import FIT_HALF_PX, DefocusDesign
 from .edge_spread import ESF_BIN_PX, BinnedEsf
-from .wave_defocus import (
-    DIFFRACTION_MAX_PX,
-    WAVE_MIN_PX,
-    defocus_integral_rest,
-    jittered_ramp_rest,
-)
-
-STATIC_STEP_PX = 0.05
-"""Spacing of the static kernel's nodes (pixels). The kernel is piecewise linear between
-them: each node's mass is spread over a triangle reaching the next nodes (two passes of a
-moving average of about the spacing), not a point. Point masses make every edge-spread
-function a staircase of 0.05 px steps; a geometric defocus smooths it, but the
-wave-optical kernel near focus is almost a point, and bins whose profiles share one
-sub-pixel phase (edges along the pixel rows) sample the staircase: on exact wave-optical
-edges of a diffraction-limited microlens (f/15.6, 550 nm) one frame's function could not
-be fitted with any static kernel (chi-square 17 where the noise gives 0)."""
-
-FIT_HALF_PX = 4.5
-"""Only bins within this distance of the edge are fitted (pixels)."""
-
-STATIC_HALF_PX = FIT_HALF_PX + 1.5
-"""Half width of the static kernel (pixels); mass beyond it goes into the offsets. It
-reaches past the fitted window: a diffraction-limited microlens (a square aperture at
-f/12.5 in green light has its first zero at λN = 2.75 px of 2.5 µm) spreads light into
-lobes and 1/x² tails that cross the whole window, and a kernel cut at 3 px left them to
-the per-frame offset and gain, which cannot take their shape: on exact functions Q0 came
-out 0.67 % low, on a Monte-Carlo sweep with that diffraction 12 % off with κ = 0.5
-(tests/test_defocus.py); with the kernel 1.5 px past the window it is exact again."""
+from .wave_defocus import DIFFRACTION_MAX_PX
 
 MODEL_FLOOR = 5e-4
 """Added in quadrature to every bin's standard error (fraction of the edge contrast): the
@@ -61,20 +33,9 @@ model's limit (thin lenses, a uniform aperture); keeps a few noiseless bins from
 SMOOTHNESS = 1e-7
 """Weight of the second-difference penalty on the static kernel (relative to the data)."""
 
-_T = TypeVar("_T")
-
 KAPPA_MAX = 1.0
 """Upper bound of the aperture's RMS scale ``κ``: the square cell of side ``D``
 (:mod:`calibration.defocus`)."""
-
-
-def _node_spread(rows: NDArray[np.floating], lattice_px: float) -> NDArray[np.floating]:
-    """``rows`` (functions on a lattice of spacing ``lattice_px``) convolved with the
-    triangle that spreads a static node's mass to its neighbours (two centred moving
-    averages of the odd number of lattice steps nearest ``STATIC_STEP_PX``)."""
-    taps = 2 * int(round(0.5 * STATIC_STEP_PX / lattice_px)) + 1
-    once = uniform_filter1d(rows, taps, axis=-1, mode="nearest")
-    return np.asarray(uniform_filter1d(once, taps, axis=-1, mode="nearest"), dtype=rows.dtype)
 
 
 @dataclass(frozen=True)
@@ -85,40 +46,6 @@ class EdgeObservation:
     corner: str
     Q: float
     esf: BinnedEsf
-
-
-def _box_integral(t: NDArray[np.floating], d: NDArray[np.floating]) -> NDArray[np.float64]:
-    """``∫_{-∞}^{t} C(τ) dτ`` of the cumulative line-spread ``C`` of a box of width ``d``."""
-    dd = np.maximum(d, 1e-9)
-    inside = np.clip(t + 0.5 * dd, 0.0, dd)
-    return np.where(t > 0.5 * dd, t, inside * inside / (2.0 * dd))
-
-
-def _disk_integral(t: NDArray[np.floating], d: NDArray[np.floating]) -> NDArray[np.float64]:
-    """``∫_{-∞}^{t} C(τ) dτ`` of the cumulative line-spread of a uniform disk of diameter ``d``.
-
-    With ``u = 2t/d``: ``C = ½ + (u√(1-u²) + asin u)/π`` and its integral is
-    ``(d/2)·[u/2 + (u·asin u + √(1-u²))/π - (1-u²)^{3/2}/(3π)]``: 0 below the
-    disk, ``t`` above it; the special functions are evaluated only inside.
-    """
-    t, dd = np.broadcast_arrays(t, np.maximum(d, 1e-9))
-    out = np.where(t >= 0.5 * dd, t, 0.0).astype(np.float64)
-    inside = np.abs(t) < 0.5 * dd
-    u = 2.0 * t[inside] / dd[inside]
-    root = np.sqrt(1.0 - u * u)
-    j = 0.5 * u + (u * np.arcsin(u) + root) / np.pi - root**3 / (3.0 * np.pi)
-    out[inside] = 0.5 * dd[inside] * j
-    return out
-
-
-def _aperture_integral(
-    t: NDArray[np.floating], d: NDArray[np.floating], alpha: float
-) -> NDArray[np.float64]:
-    """``∫C`` of the aperture's line spread at diameter ``d``: box (``α``) and disk mixture."""
-    out = alpha * _box_integral(t, d) if alpha > 0.0 else np.zeros(np.broadcast(t, d).shape)
-    if alpha < 1.0:
-        out = out + (1.0 - alpha) * _disk_integral(t, d)
-    return np.asarray(out, dtype=np.float64)
 
 
 def _nonnegative_solve(lhs: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -132,41 +59,8 @@ def _nonnegative_solve(lhs: NDArray[np.float64], rhs: NDArray[np.float64]) -> ND
     return s
 
 
-JITTER_NEGLIGIBLE_PX = 0.01
-"""Placement jitter (px) below which an observation's model is not averaged over it (its
-variance, 1e-4 px², is far below what the defocus fit resolves)."""
-
-_HERMITE_NODES, _HERMITE_WEIGHTS = np.polynomial.hermite_e.hermegauss(5)
-_JITTER_NODES = (_HERMITE_NODES, _HERMITE_WEIGHTS / np.sum(_HERMITE_WEIGHTS))
-"""Gauss-Hermite nodes and weights of the standard normal: the average over the placement
-jitter of an observation (:attr:`BinnedEsf.jitter_px`)."""
-
-
-def diameter_factor(kappa: float, alpha: float) -> float:
-    """Aperture diameter factor for RMS scale ``κ`` and shape ``α``.
-
-    ``κ`` scales the kernel's RMS width to that of a box of diameter ``κ·d``
-    whatever the shape, so ``κ`` and ``α`` are nearly uncorrelated: a box of
-    width ``d`` has variance ``d²/12``, a uniform disk's projection ``d²/16``.
-    """
-    return kappa * float(np.sqrt((1.0 / 12.0) / (alpha / 12.0 + (1.0 - alpha) / 16.0)))
-
-
 class DefocusProblem:
-    """The stacked data of every observation and the linear sub-problems.
-
-    The static kernel is a set of point masses at ``g_i = i·STATIC_STEP_PX``
-    (mirrored: it is symmetric). Each bin of the data is the mean of samples
-    spread about its mean position ``x̄`` with standard deviation ``σ``; the
-    model of a bin is the function averaged over the uniform interval of the
-    same mean and spread, ``x̄ ± w`` with ``w = √3·σ`` (a point value when the
-    profiles share one sub-pixel phase, the bin average when their phases
-    cover it). For the mass at ``±g`` that is ``[IC(x̄+w∓g) - IC(x̄-w∓g)]/(2w)``
-    with ``IC`` the integral of the defocus kernel's cumulative line spread,
-    tabulated per observation on a fine lattice and interpolated.
-    """
-
-    LATTICE_PX = 0.005
+    """The stacked data of every observation, its design and the linear sub-problems."""
 
     def __init__(
         self,
@@ -176,17 +70,12 @@ class DefocusProblem:
         pool: Executor | None = None,
         blocks: int = 1,
     ) -> None:
-        """``pool`` and ``blocks``: each evaluation's per-observation work (the kernels'
-        lattices, the design's interpolation, the normal equations) is cut into ``blocks``
-        contiguous runs of observations, run on ``pool`` (threads: numpy releases the GIL
-        for these array operations); the result is the same as in one block."""
+        """``pool`` and ``blocks``: each evaluation's per-observation work (the design's,
+        :class:`DefocusDesign`, and the normal equations) is cut into ``blocks``
+        contiguous runs of observations, run on ``pool``; the result is the same as in one
+        block."""
         self.obs = list(obs)
-        self.pitch = lens_pitch_px
-        self.pool = pool
-        h = STATIC_STEP_PX
         n_bins = int(round(2 * FIT_HALF_PX / ESF_BIN_PX))
-        n_cells = int(round(STATIC_HALF_PX / h)) + 1
-        self.grid = np.arange(n_cells) * h
         n = len(self.obs)
         self.v = np.zeros((n, n_bins))
         self.w = np.zeros((n, n_bins))  # sqrt of the weights; 0 where a bin is empty
@@ -201,184 +90,49 @@ class DefocusProblem:
             self.w[k, bi] = 1.0 / se
             xbar[k, bi] = o.esf.x[inside]
             half[k, bi] = np.sqrt(3.0) * o.esf.position_sd_px[inside]
-        half = np.maximum(half, 2 * self.LATTICE_PX)
         self.w_data = self.w.copy()
         self.noise_scale = np.ones(n)  # each observation's errors are scaled by this
         self.xbar = xbar
         self._extra = np.zeros_like(xbar)
-        self._ramp_rest: NDArray[np.float64] | None = None  # the wave kernel's jittered ramp
         self.q = np.array([o.Q for o in self.obs])
-        self.jitter = np.array([o.esf.jitter_px for o in self.obs])
         self.frame = np.array([o.frame for o in self.obs])
-        # the four interval ends of every (observation, bin, mass), as fine-lattice positions
-        g = self.grid[None, None, :]
-        xb, wb = xbar[:, :, None], half[:, :, None]
-        self.start = -FIT_HALF_PX - STATIC_HALF_PX - 1.0
-        ends = (xb + wb - g, xb - wb - g, xb + wb + g, xb - wb + g)
-        self.n_lattice = (
-            int(np.ceil(2 * (FIT_HALF_PX + STATIC_HALF_PX + 1.0) / self.LATTICE_PX)) + 2
+        jitter = np.array([o.esf.jitter_px for o in self.obs])
+        self.builder = DefocusDesign(
+            self.q, jitter, xbar, half, lens_pitch_px, pool=pool, blocks=blocks
         )
-        row_start = (np.arange(n) * self.n_lattice)[:, None, None]
-        # native-width indices: a gather with int32 indices converts them on every call
-        self.index: list[NDArray[np.intp]] = []
-        self.frac: list[NDArray[np.float32]] = []
-        for e in ends:
-            t = (e - self.start) / self.LATTICE_PX
-            j = np.floor(t)
-            self.index.append((row_start + j).astype(np.intp).ravel())
-            self.frac.append((t - j).ravel().astype(np.float32))
-        self.shape = (n, n_bins, n_cells)
-        self._set_blocks(blocks if pool is not None else 1)
-        self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
-        ramp = np.maximum(self.lattice, 0.0)
-        # what spreading the nodes (:func:`_node_spread`) adds to the ramp max(t, 0)
-        self.ramp_spread = (_node_spread(ramp, self.LATTICE_PX) - ramp).astype(np.float32)
-        self.norm = (4.0 * half)[:, :, None].astype(np.float32)  # 2w (bin average) x 2 (mirror)
-        # ∫C follows the ramp max(t, 0) outside the kernel: its part of every interval's
-        # difference, IC(x̄+w∓g) - IC(x̄-w∓g), is clip(x̄+w∓g, 0, 2w), taken exactly here
-        # (float64); the float32 lattice holds only the bounded rest, IC - max(t, 0), whose
-        # kink sits on the lattice node t = 0 (so the interpolation is the same as of IC)
-        self.ramp = (np.clip(xb + wb - g, 0.0, 2.0 * wb) + np.clip(xb + wb + g, 0.0, 2.0 * wb)) / (
-            4.0 * wb
-        )
+        self.grid = self.builder.grid
+        n_cells = self.grid.size
         second = np.zeros((n_cells - 2, n_cells))
         for r in range(n_cells - 2):
             second[r, r : r + 3] = (1.0, -2.0, 1.0)
         self.penalty = second.T @ second
         self.data_scale = float(np.mean(np.sum(self.w**2, axis=1)))
 
-    def _set_blocks(self, blocks: int) -> None:
-        """Cut the observations into ``blocks`` contiguous runs; each run's lattice indices
-        relative to its own first row (views of the whole arrays for a single run)."""
-        n, n_bins, n_cells = self.shape
-        bounds = np.linspace(0, n, max(1, min(blocks, n)) + 1).round().astype(int)
-        self.blocks = [
-            slice(int(k0), int(k1)) for k0, k1 in zip(bounds[:-1], bounds[1:], strict=True)
-        ]
-        per_row = n_bins * n_cells
-        self.block_index = [
-            [j[b.start * per_row : b.stop * per_row] - b.start * self.n_lattice for j in self.index]
-            if b.start
-            else [j[: b.stop * per_row] for j in self.index]
-            for b in self.blocks
-        ]
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(observations, bins, static nodes)``: the design's shape."""
+        return self.builder.shape
 
-    def _map(self, work: Callable[[int], _T]) -> list[_T]:
-        """``work(k)`` of every block ``k``, on the pool when there is one."""
-        if self.pool is None or len(self.blocks) == 1:
-            return [work(k) for k in range(len(self.blocks))]
-        return list(self.pool.map(work, range(len(self.blocks))))
-
-    def _geometric_rest(
-        self, d: NDArray[np.float64], alpha: float, rows: slice = slice(None)
-    ) -> NDArray[np.float64]:
-        """``∫C - max(t, 0)`` on the lattice of the geometric aperture at diameters ``d`` (of
-        the observations ``rows``), each observation's placement jitter averaged over
-        (Gauss-Hermite, where not negligible)."""
-        t = self.lattice[None, :]
-        integral = _aperture_integral(t, d[:, None], alpha)
-        jitter = self.jitter[rows]
-        jittered = np.flatnonzero(jitter > JITTER_NEGLIGIBLE_PX)
-        if jittered.size:
-            dj = d[jittered, None]
-            smooth = np.zeros((jittered.size, self.lattice.size))
-            for node, weight in zip(*_JITTER_NODES, strict=True):
-                smooth += weight * _aperture_integral(t + node * jitter[jittered, None], dj, alpha)
-            integral[jittered] = smooth
-        integral -= np.maximum(t, 0.0)
-        return integral
-
-    def _wave_rest(
-        self, d: NDArray[np.float64], alpha: float, s: float, rows: slice = slice(None)
-    ) -> NDArray[np.float64]:
-        """The same for the effective defocus kernel of diffraction scale ``s`` px
-        (:mod:`calibration.wave_defocus`; its jitter exactly, as a Gaussian factor)."""
-        jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
-        if not jitter.any():
-            return defocus_integral_rest(self.lattice, d, s, alpha)
-        rest = defocus_integral_rest(self.lattice, d, s, alpha, jitter[rows])
-        return rest + self._jittered_ramp()[rows]
-
-    def _jittered_ramp(self) -> NDArray[np.float64]:
-        """The wave kernel's jittered ramp (:func:`jittered_ramp_rest`) of every observation,
-        made at its first use (the same at every evaluation)."""
-        if self._ramp_rest is None:
-            jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
-            self._ramp_rest = jittered_ramp_rest(self.lattice, jitter)
-        return self._ramp_rest
+    @property
+    def blocks(self) -> list[slice]:
+        """The contiguous runs of observations an evaluation is cut into."""
+        return self.builder.blocks
 
     def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
-        """``A[k, b, i]``: bin ``b`` of observation ``k`` for a unit static mass at ``±g_i``.
-
-        ``theta = (Q0, κ, α, s)``: the diffraction scale ``s`` (px) makes the defocus kernel
-        the wave-optical one (:mod:`calibration.wave_defocus`); 0 is geometric, and below
-        ``WAVE_MIN_PX`` the two are blended linearly."""
-        q0, kappa, alpha, s = theta
-        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
-        if rows.size != self.shape[0]:
-            raise ValueError("the design is built for every observation at once")
-        if s > 0.0 and np.any(self.jitter > JITTER_NEGLIGIBLE_PX):
-            self._jittered_ramp()  # made once, before the blocks share it
-        out = np.empty(self.shape)
-        self._map(lambda k: self._design_block(d, float(alpha), float(s), k, out))
-        return out
-
-    def _design_block(
-        self, d: NDArray[np.float64], alpha: float, s: float, block: int, out: NDArray[np.float64]
-    ) -> None:
-        """:meth:`design` of the observations of block ``block``, written into their rows of
-        ``out``."""
-        rows = self.blocks[block]
-        d = d[rows]
-        if s >= WAVE_MIN_PX:
-            integral = self._wave_rest(d, alpha, s, rows)
-        else:
-            integral = self._geometric_rest(d, alpha, rows)
-            if s > 0.0:
-                share = s / WAVE_MIN_PX
-                wave = self._wave_rest(d, alpha, WAVE_MIN_PX, rows)
-                integral = (1.0 - share) * integral + share * wave
-        # linear interpolation on the lattice from its values and forward differences, of the
-        # part beyond the ramp (bounded: float32 keeps ~1e-8 of it where ∫C itself reaches
-        # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
-        # the static nodes spread (:func:`_node_spread`), in the lattice's float32
-        spread = _node_spread(integral.astype(np.float32), self.LATTICE_PX)
-        flat = (spread + self.ramp_spread).ravel()
-        step = np.zeros_like(flat)
-        np.subtract(flat[1:], flat[:-1], out=step[:-1])
-        index = self.block_index[block]
-        per_row = self.shape[1] * self.shape[2]
-        ends = [f[rows.start * per_row : rows.stop * per_row] for f in self.frac]
-        values = np.zeros(index[0].size, dtype=np.float32)
-        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), index, ends, strict=True):
-            value = step.take(j)
-            value *= f
-            value += flat.take(j)
-            if sign > 0:
-                values += value
-            else:
-                values -= value
-        shape = (rows.stop - rows.start, *self.shape[1:])
-        np.add(values.reshape(shape) / self.norm[rows], self.ramp[rows], out=out[rows])  # float64
+        """``A[k, b, i]`` at ``theta = (Q0, κ, α, s)`` (:meth:`DefocusDesign.design`)."""
+        return self.builder.design(theta, rows)
 
     def without(self, dropped: NDArray[np.int64]) -> DefocusProblem:
         """The same problem with the observations at ``dropped`` left out (their data, noise
-        scales and lattice rows), as if built from the others (a jackknife's refit)."""
-        keep = np.setdiff1d(np.arange(self.shape[0]), dropped)
+        scales and lattice rows), in one block, as if built from the others (a jackknife's
+        refit)."""
+        keep = np.setdiff1d(np.arange(len(self.obs)), dropped)
         sub = copy.copy(self)
         sub.obs = [self.obs[k] for k in keep]
-        names = ("v", "w", "w_data", "noise_scale", "xbar", "q", "jitter", "frame", "norm", "ramp")
-        for name in names:
+        for name in ("v", "w", "w_data", "noise_scale", "xbar", "q", "frame"):
             setattr(sub, name, getattr(self, name)[keep])
         sub._extra = np.zeros_like(sub.xbar)
-        sub._ramp_rest = None if self._ramp_rest is None else self._ramp_rest[keep]
-        # lattice rows renumbered: row k of the kept ones starts at k·n_lattice
-        shift = ((keep - np.arange(keep.size)) * self.n_lattice)[:, None]
-        sub.index = [(j.reshape(self.shape[0], -1)[keep] - shift).ravel() for j in self.index]
-        sub.frac = [f.reshape(self.shape[0], -1)[keep].ravel() for f in self.frac]
-        sub.shape = (keep.size, *self.shape[1:])
-        sub.pool = None
-        sub._set_blocks(1)
+        sub.builder = self.builder.subset(keep)
         sub.data_scale = float(np.mean(np.sum(sub.w_data**2, axis=1)))
         return sub
 
@@ -402,11 +156,11 @@ class DefocusProblem:
         gram = np.empty((n_obs, n_cells, n_cells))
 
         def normal_equations(block: int) -> None:
-            b = self.blocks[block]
+            b = self.builder.blocks[block]
             np.multiply(a[b], w2[b, :, None], out=aw[b])
             np.matmul(a[b].transpose(0, 2, 1), aw[b], out=gram[b])
 
-        self._map(normal_equations)
+        self.builder.map_blocks(normal_equations)
         lam = SMOOTHNESS * self.data_scale * n_obs
         coef = np.zeros((n_obs, 3))
         coef[:, 1] = 1.0

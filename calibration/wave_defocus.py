@@ -20,7 +20,7 @@ focus in its non-parametric static kernel and convolves it with the *effective* 
 kernel ``K`` whose transfer function is the ratio of the two, ``T(f; d)/T(f; 0)``, up to
 the cut-off ``1/s`` (beyond it the pattern passes nothing and ``K`` is taken as a point).
 :func:`defocus_integral_rest` gives ``K``'s integrated cumulative line spread less the
-ramp ``max(t, 0)``, what :class:`calibration.defocus_problem.DefocusProblem` interpolates,
+ramp ``max(t, 0)``, what :class:`calibration.defocus_design.DefocusDesign` interpolates,
 by a cosine transform over ``0 ≤ f < 1/s``.
 """
 
