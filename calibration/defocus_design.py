@@ -149,6 +149,8 @@ class DefocusDesign:
         self.pool = pool
         self.q = q
         self.jitter = jitter
+        # the jitter the wave kernel takes (negligible ones as none): derived once here
+        self.wave_jitter = np.where(jitter > JITTER_NEGLIGIBLE_PX, jitter, 0.0)
         self._ramp_rest: NDArray[np.float64] | None = None  # the wave kernel's jittered ramp
         n, n_bins = xbar.shape
         n_cells = int(round(STATIC_HALF_PX / STATIC_STEP_PX)) + 1
@@ -201,6 +203,9 @@ class DefocusDesign:
             else [j[: b.stop * per_row] for j in self.index]
             for b in self.blocks
         ]
+        self.block_frac = [
+            [f[b.start * per_row : b.stop * per_row] for f in self.frac] for b in self.blocks
+        ]
 
     def map_blocks(self, work: Callable[[int], _T]) -> list[_T]:
         """``work(k)`` of every block ``k`` (``self.blocks[k]``, a slice of the observations),
@@ -233,18 +238,16 @@ class DefocusDesign:
     ) -> NDArray[np.float64]:
         """The same for the effective defocus kernel of diffraction scale ``s`` px
         (:mod:`calibration.wave_defocus`; its jitter exactly, as a Gaussian factor)."""
-        jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
-        if not jitter.any():
+        if not self.wave_jitter.any():
             return defocus_integral_rest(self.lattice, d, s, alpha)
-        rest = defocus_integral_rest(self.lattice, d, s, alpha, jitter[rows])
+        rest = defocus_integral_rest(self.lattice, d, s, alpha, self.wave_jitter[rows])
         return rest + self._jittered_ramp()[rows]
 
     def _jittered_ramp(self) -> NDArray[np.float64]:
         """The wave kernel's jittered ramp (:func:`jittered_ramp_rest`) of every observation,
         made at its first use (the same at every evaluation)."""
         if self._ramp_rest is None:
-            jitter = np.where(self.jitter > JITTER_NEGLIGIBLE_PX, self.jitter, 0.0)
-            self._ramp_rest = jittered_ramp_rest(self.lattice, jitter)
+            self._ramp_rest = jittered_ramp_rest(self.lattice, self.wave_jitter)
         return self._ramp_rest
 
     def design(self, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -257,7 +260,7 @@ class DefocusDesign:
         d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
-        if s > 0.0 and np.any(self.jitter > JITTER_NEGLIGIBLE_PX):
+        if s > 0.0 and self.wave_jitter.any():
             self._jittered_ramp()  # made once, before the blocks share it
         out = np.empty(self.shape)
         self.map_blocks(lambda k: self._design_block(d, float(alpha), float(s), k, out))
@@ -286,11 +289,9 @@ class DefocusDesign:
         flat = (spread + self.ramp_spread).ravel()
         step = np.zeros_like(flat)
         np.subtract(flat[1:], flat[:-1], out=step[:-1])
-        index = self.block_index[block]
-        per_row = self.shape[1] * self.shape[2]
-        ends = [f[rows.start * per_row : rows.stop * per_row] for f in self.frac]
+        index, fractions = self.block_index[block], self.block_frac[block]
         values = np.zeros(index[0].size, dtype=np.float32)
-        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), index, ends, strict=True):
+        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), index, fractions, strict=True):
             value = step.take(j)
             value *= f
             value += flat.take(j)
@@ -305,7 +306,7 @@ class DefocusDesign:
         """The design of the observations at ``keep`` (in order) alone, in one block, as if
         built from them (a jackknife's refit)."""
         sub = copy.copy(self)
-        for name in ("q", "jitter", "norm", "ramp"):
+        for name in ("q", "jitter", "wave_jitter", "norm", "ramp"):
             setattr(sub, name, getattr(self, name)[keep])
         sub._ramp_rest = None if self._ramp_rest is None else self._ramp_rest[keep]
         # lattice rows renumbered: row k of the kept ones starts at k·n_lattice

@@ -94,12 +94,10 @@ class DefocusProblem:
         self.noise_scale = np.ones(n)  # each observation's errors are scaled by this
         self.xbar = xbar
         self._extra = np.zeros_like(xbar)
-        self.q = np.array([o.Q for o in self.obs])
         self.frame = np.array([o.frame for o in self.obs])
+        q = np.array([o.Q for o in self.obs])
         jitter = np.array([o.esf.jitter_px for o in self.obs])
-        self.builder = DefocusDesign(
-            self.q, jitter, xbar, half, lens_pitch_px, pool=pool, blocks=blocks
-        )
+        self.builder = DefocusDesign(q, jitter, xbar, half, lens_pitch_px, pool=pool, blocks=blocks)
         self.grid = self.builder.grid
         n_cells = self.grid.size
         second = np.zeros((n_cells - 2, n_cells))
@@ -107,6 +105,11 @@ class DefocusProblem:
             second[r, r : r + 3] = (1.0, -2.0, 1.0)
         self.penalty = second.T @ second
         self.data_scale = float(np.mean(np.sum(self.w**2, axis=1)))
+
+    @property
+    def q(self) -> NDArray[np.float64]:
+        """Each observation's measured ``Q`` (the design's)."""
+        return self.builder.q
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -129,7 +132,7 @@ class DefocusProblem:
         keep = np.setdiff1d(np.arange(len(self.obs)), dropped)
         sub = copy.copy(self)
         sub.obs = [self.obs[k] for k in keep]
-        for name in ("v", "w", "w_data", "noise_scale", "xbar", "q", "frame"):
+        for name in ("v", "w", "w_data", "noise_scale", "xbar", "frame"):
             setattr(sub, name, getattr(self, name)[keep])
         sub._extra = np.zeros_like(sub.xbar)
         sub.builder = self.builder.subset(keep)
@@ -156,7 +159,7 @@ class DefocusProblem:
         gram = np.empty((n_obs, n_cells, n_cells))
 
         def normal_equations(block: int) -> None:
-            b = self.builder.blocks[block]
+            b = self.blocks[block]
             np.multiply(a[b], w2[b, :, None], out=aw[b])
             np.matmul(a[b].transpose(0, 2, 1), aw[b], out=gram[b])
 
