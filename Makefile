@@ -35,7 +35,7 @@ test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
-		$(BIN)/python -m pytest -n 2 --dist loadfile -q --durations=15
+		$(BIN)/python -m pytest -n 3 --dist loadfile -q --durations=15
 
 lint: setup
 	$(BIN)/ruff check .

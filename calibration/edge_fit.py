@@ -159,12 +159,12 @@ def fit_edges(
     jtj = jt @ jac
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # singular: inf cov
         det = np.linalg.det(jtj)
-    cov_tt = np.full(n, np.inf)
+    position_var = np.full(n, np.inf)  # a singular fit (even a noise-free one): undetermined
     good = np.isfinite(det) & (np.abs(det) > 1e-300)
     if np.any(good):
         cov = np.linalg.inv(jtj[good])
-        cov_tt[good] = cov[:, 2, 2]
-    position_se = np.sqrt(np.maximum(sigma2 * cov_tt, 0.0))
+        position_var[good] = sigma2[good] * cov[:, 2, 2]
+    position_se = np.sqrt(np.maximum(position_var, 0.0))
     width = np.abs(p[:, 3])
     ok = (
         np.isfinite(p).all(axis=1)
