@@ -34,7 +34,7 @@ def _short_sweep(out: Path, seed: int, *extra: str) -> Path:
 
 @pytest.fixture(scope="module")
 def seed5(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Seed 5's short sweep as is (the control of the exposure and vignetting tests)."""
+    """Seed 5's short sweep as is: the frames of the white-image test, the vignetting's control."""
     return _short_sweep(tmp_path_factory.mktemp("seed5") / "free", 5)
 
 
