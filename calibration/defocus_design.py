@@ -256,10 +256,10 @@ class DefocusDesign:
         ``theta = (Q0, κ, α, s)``: the diffraction scale ``s`` (px) makes the defocus kernel
         the wave-optical one (:mod:`calibration.wave_defocus`); 0 is geometric, and below
         ``WAVE_MIN_PX`` the two are blended linearly."""
-        q0, kappa, alpha, s = theta
-        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
         if rows.size != self.shape[0]:
             raise ValueError("the design is built for every observation at once")
+        q0, kappa, alpha, s = theta
+        d = diameter_factor(kappa, alpha) * self.pitch * np.abs(self.q[rows] - q0)
         if s > 0.0 and self.wave_jitter.any():
             self._jittered_ramp()  # made once, before the blocks share it
         out = np.empty(self.shape)

@@ -51,10 +51,12 @@ def render_mcsim(
     return out
 
 
-def render_mcsim_short(out: Path, seed: int, *extra: str) -> Path:
+def render_mcsim_short(out: Path, seed: int, *extra: str, frames: int = 31) -> Path:
     """mcsim's 50 px camera, 31 frames 2 mm apart from rail 20 mm (focus inside), with
-    ``extra`` options."""
-    return render_mcsim(out, frames=31, step_mm=2, seed=seed, extra=(*extra, "--start-mm", "20"))
+    ``extra`` options; ``frames``: only the first ones of that sweep."""
+    return render_mcsim(
+        out, frames=frames, step_mm=2, seed=seed, extra=(*extra, "--start-mm", "20")
+    )
 
 
 def with_sensor_defects(

@@ -30,13 +30,7 @@ def _with_white_image(sweep: Path, out: Path, *extra: str) -> Path:
     image), so this is the archive a full render with ``extra`` writes, frame for frame
     (checked on the first frame), for the white image's cost."""
     seed = json.loads((sweep / "truth.json").read_text())["render"]["seed"]
-    white = render_mcsim(
-        out.with_name(out.name + "-white"),
-        frames=1,
-        step_mm=2,
-        seed=seed,
-        extra=(*extra, "--start-mm", "20"),
-    )
+    white = render_mcsim_short(out.with_name(out.name + "-white"), seed, *extra, frames=1)
     first = "frames/0000.png"
     assert (white / first).read_bytes() == (sweep / first).read_bytes(), "frames differ"
     shutil.copytree(sweep, out)
