@@ -398,13 +398,47 @@ def _edge_from_blocks(
     """
     a1, c1, s1, u1 = first
     a2, c2, s2, u2 = second
-    along = np.concatenate([a1[u1], a2[u2]])
-    across = np.concatenate([c1[u1], c2[u2]])
-    se = np.concatenate([s1[u1], s2[u2]])
-    ref = float(0.5 * (np.mean(a1[u1]) + np.mean(a2[u2])))
+    groups = [(a1[u1], c1[u1], s1[u1]), (a2[u2], c2[u2], s2[u2])]
+    ref = float(0.5 * (np.mean(groups[0][0]) + np.mean(groups[1][0])))
+    # weighted least squares of a common slope and one intercept per block, in closed
+    # form: the slope from the deviations about each block's weighted means
+    sums = []
+    for along, across, se in groups:
+        wts = 1.0 / np.maximum(se, 0.005) ** 2
+        d = along - ref
+        w_sum = float(np.sum(wts))
+        d_mean, c_mean = float(np.sum(wts * d)) / w_sum, float(np.sum(wts * across)) / w_sum
+        sums.append((wts, d, across, w_sum, d_mean, c_mean))
+    sxx = sum(float(np.sum(w * (d - dm) ** 2)) for w, d, _, _, dm, _ in sums)
+    sxy = sum(float(np.sum(w * (d - dm) * (c - cm))) for w, d, c, _, dm, cm in sums)
+    if not sxx > 0.0:
+        return _edge_from_blocks_lstsq(groups, ref)
+    slope = sxy / sxx
+    intercepts = [cm - slope * dm for _, _, _, _, dm, cm in sums]
+    chi2 = sum(
+        float(np.sum(w * (c - i - slope * d) ** 2))
+        for (w, d, c, _, _, _), i in zip(sums, intercepts, strict=True)
+    )
+    n_points = sum(d.size for _, d, _, _, _, _ in sums)
+    s2_unit = chi2 / max(1, n_points - 3)
+    # variance of the mean intercept: 1/W1 + 1/W2 + (d̄1 + d̄2)²/Sxx, over four
+    var_sum = 1.0 / sums[0][3] + 1.0 / sums[1][3] + (sums[0][4] + sums[1][4]) ** 2 / sxx
+    mean_se = 0.5 * float(np.sqrt(max(var_sum, 0.0) * max(s2_unit, 1.0)))
+    return intercepts[0], intercepts[1], slope, mean_se, ref
+
+
+def _edge_from_blocks_lstsq(
+    groups: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+    ref: float,
+) -> tuple[float, float, float, float, float]:
+    """:func:`_edge_from_blocks` by a least-norm solution, for points all at one position
+    along the edge (the slope undetermined)."""
+    along = np.concatenate([g[0] for g in groups])
+    across = np.concatenate([g[1] for g in groups])
+    se = np.concatenate([g[2] for g in groups])
     wts = 1.0 / np.maximum(se, 0.005) ** 2
     design = np.zeros((along.size, 3))
-    n1 = int(u1.sum())
+    n1 = groups[0][0].size
     design[:n1, 0] = 1.0
     design[n1:, 1] = 1.0
     design[:, 2] = along - ref

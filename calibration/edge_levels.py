@@ -80,30 +80,54 @@ def levels_with_tail_shape(
     """
     light = x >= x_flat
     dark = x <= -x_flat
-    tail = (light | dark).astype(np.float64)
     ref = x_flat + 1.0
-    levers = (
-        np.where(light, x - ref, 0.0),
-        np.where(dark, x + ref, 0.0),
-        np.where(light, (x - ref) ** 2, 0.0),
-        np.where(dark, (x + ref) ** 2, 0.0),
+    sums = _TailSums(
+        np.stack(
+            [
+                (light | dark).astype(np.float64),  # the dark level's column
+                light.astype(np.float64),
+                np.where(light, x - ref, 0.0),  # the four levers of the tails' shape
+                np.where(dark, x + ref, 0.0),
+                np.where(light, (x - ref) ** 2, 0.0),
+                np.where(dark, (x + ref) ** 2, 0.0),
+            ]
+        ),
+        y,
     )
-    n_terms = len(levers)
-    slopes = np.zeros(n_terms)
+    levers = slice(2, 6)
+    slopes = np.zeros(4)
     b = c = np.zeros(x.shape[0])
     for k in range(iterations + 1):
-        shape = light + sum(slopes[i] * levers[i] for i in range(n_terms))
-        basis = _LevelBasis(tail, shape)
-        b, c = basis.solve(y)
+        shape = np.concatenate([[0.0, 1.0], slopes])  # T's coefficients on the columns
+        with_shape = sums.dot(shape)  # (P, 6): each column's dot with T
+        aa, ab, bb = sums.gram[:, 0, 0], with_shape[:, 0], with_shape @ shape
+        det = aa * bb - ab * ab
+        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
+        vb, vc = sums.y_dot[:, 0], sums.y_dot @ shape
+        b, c = (bb * vb - ab * vc) / det, (aa * vc - ab * vb) / det
         if k == iterations:
             break
-        resid = (y - b[:, None] - c[:, None] * shape) * tail
-        jac = [basis.residual_of(c[:, None] * lever) for lever in levers]
-        ok = np.isfinite(basis.det)
-        normal = np.array(
-            [[np.sum(_dot(jac[i], jac[j])[ok]) for j in range(n_terms)] for i in range(n_terms)]
+        ok = np.isfinite(det)
+        # Gauss-Newton on the shape with the levels projected out (variable projection):
+        # the derivative of profile p's model by lever i is c_p·L_i; what the two level
+        # columns A = (tail, T) leave of it has the Gram matrix
+        # c²·L_iᵀL_j - u_iᵀ(AᵀA)⁻¹u_j, u_i = c_p·AᵀL_i; the residual is orthogonal to A,
+        # so its dot with the projected derivative is c_p·L_iᵀ(y - b - c·T). Profiles
+        # without levels (det NaN) weigh nothing.
+        c_ok = np.where(ok, c, 0.0)
+        inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        u_b = c_ok[:, None] * sums.gram[:, 0, levers]
+        u_c = c_ok[:, None] * with_shape[:, levers]
+        normal = (
+            np.tensordot(c_ok * c_ok, sums.gram[:, levers, levers], axes=1)
+            - (u_b.T * (bb * inv_det)) @ u_b
+            + (u_b.T * (ab * inv_det)) @ u_c
+            + (u_c.T * (ab * inv_det)) @ u_b
+            - (u_c.T * (aa * inv_det)) @ u_c
         )
-        rhs = np.array([np.sum(_dot(jac[i], resid)[ok]) for i in range(n_terms)])
+        rhs = c_ok @ (
+            sums.y_dot[:, levers] - np.where(ok, b, 0.0)[:, None] * sums.gram[:, 0, levers] - u_c
+        )
         if not (np.all(np.isfinite(normal)) and np.all(np.isfinite(rhs))):
             break
         # least norm: profiles at one sampling phase leave the shape partly free (any
@@ -112,6 +136,26 @@ def levels_with_tail_shape(
     z = (y - b[:, None]) / np.where(c == 0, np.nan, c)[:, None]
     enough = (dark.sum(axis=1) >= 2) & (light.sum(axis=1) >= 2)
     return z, np.where(enough, c, np.nan)
+
+
+class _TailSums:
+    """Per profile, the dot products of a few sample columns with each other (``gram``,
+    ``(P, m, m)``) and with the data (``y_dot``, ``(P, m)``): every least-squares sum over
+    combinations of those columns, without another pass over the samples."""
+
+    def __init__(self, columns: NDArray[np.float64], y: NDArray[np.float64]) -> None:
+        m = columns.shape[0]
+        self.gram = np.empty((y.shape[0], m, m))
+        for i in range(m):
+            for j in range(i, m):
+                self.gram[:, i, j] = self.gram[:, j, i] = _dot(columns[i], columns[j])
+        self.y_dot = np.stack([_dot(col, y) for col in columns], axis=1)
+
+    def dot(self, coefficients: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Per profile, each column's dot with the combination of the columns with these
+        coefficients, ``(P, m)`` (one matrix-vector product over all profiles)."""
+        p, m, _ = self.gram.shape
+        return (self.gram.reshape(p * m, m) @ coefficients).reshape(p, m)
 
 
 class _LevelBasis:

@@ -7,6 +7,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
 
 from calibration.corners import CornerOptions, MicroImageMap
 from calibration.frame_analysis import FrameContext, analyze_frame
@@ -127,3 +128,42 @@ def test_board_out_of_view_finds_no_corner(setup) -> None:
 def test_options_are_keyword_tunable() -> None:
     opts = CornerOptions(interior_fraction=0.7, profile_half_px=5)
     assert opts.profile_half_px == 5
+
+
+def test_edge_lines_are_weighted_least_squares_with_a_common_slope() -> None:
+    """Each edge's two blocks share a slope and keep their own intercepts (the two halves of
+    the reference corner's edge are the gap apart): the closed form equals the weighted
+    least squares of that design, and its error of the mean intercept the one from the
+    inverse normal matrix scaled by the reduced χ² (at least 1); points all at one position
+    along the edge (slope undetermined) take the least-norm solution."""
+    from calibration.corners import _edge_from_blocks
+
+    rng = np.random.default_rng(5)
+    along1, along2 = rng.uniform(0, 10, 12), rng.uniform(-12, -2, 9)
+    se1, se2 = rng.uniform(0.003, 0.05, 12), rng.uniform(0.003, 0.05, 9)
+    across1 = 4.0 + 0.02 * along1 + rng.normal(0, 1, 12) * se1 * 3
+    across2 = 4.1 + 0.02 * along2 + rng.normal(0, 1, 9) * se2 * 3
+    use1, use2 = np.ones(12, bool), np.ones(9, bool)
+    use1[3] = False
+    first, second = (along1, across1, se1, use1), (along2, across2, se2, use2)
+    i1, i2, slope, mean_se, ref = _edge_from_blocks(first, second)
+    a = np.r_[along1[use1], along2]
+    c = np.r_[across1[use1], across2]
+    w = 1.0 / np.maximum(np.r_[se1[use1], se2], 0.005) ** 2
+    assert ref == pytest.approx(0.5 * (along1[use1].mean() + along2.mean()))
+    design = np.c_[np.r_[np.ones(11), np.zeros(9)], np.r_[np.zeros(11), np.ones(9)], a - ref]
+    normal = design.T @ (w[:, None] * design)
+    coef = np.linalg.solve(normal, design.T @ (w * c))
+    assert_allclose([i1, i2, slope], coef, rtol=1e-10)
+    chi2 = float(np.sum(w * (c - design @ coef) ** 2)) / (a.size - 3)
+    cov = np.linalg.inv(normal) * max(chi2, 1.0)
+    assert mean_se == pytest.approx(0.5 * np.sqrt(cov[0, 0] + cov[1, 1] + 2 * cov[0, 1]))
+    flat = _edge_from_blocks(
+        (np.full(5, 2.0), across1[:5], se1[:5], np.ones(5, bool)),
+        (np.full(4, 2.0), across2[:4], se2[:4], np.ones(4, bool)),
+    )
+    w1, w2 = 1.0 / np.maximum(se1[:5], 0.005) ** 2, 1.0 / np.maximum(se2[:4], 0.005) ** 2
+    assert flat[2] == pytest.approx(0.0, abs=1e-12)
+    assert_allclose(
+        flat[:2], [np.sum(w1 * across1[:5]) / w1.sum(), np.sum(w2 * across2[:4]) / w2.sum()]
+    )
