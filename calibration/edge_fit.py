@@ -129,7 +129,12 @@ def fit_edges(
         jtr = (jt @ ra[:, :, None])[:, :, 0]
         diag = np.maximum(np.einsum("nii->ni", jtj), 1e-12)
         a = jtj + (lam[active, None] * diag)[:, :, None] * eye
-        step = _solve_damped(a, jtr)
+        try:
+            step = np.linalg.solve(a, jtr[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            step = np.stack(
+                [np.linalg.lstsq(m, v, rcond=None)[0] for m, v in zip(a, jtr, strict=True)]
+            )
         trial = (p if every else p[active]) + step
         trial[:, 3] = np.clip(trial[:, 3], 0.02, 50.0)
         t_value, t_jac = _model(t, trial)
@@ -158,10 +163,8 @@ def fit_edges(
     position_var = np.full(n, np.inf)  # a singular fit (even a noise-free one): undetermined
     good = np.isfinite(det) & (np.abs(det) > 1e-300)
     if np.any(good):
-        # the position's entry of the inverse: its cofactor over the determinant
-        keep = [0, 1, 3]
-        minor = _det3(jtj[good][:, keep][:, :, keep])
-        position_var[good] = sigma2[good] * minor / det[good]
+        cov = np.linalg.inv(jtj[good])
+        position_var[good] = sigma2[good] * cov[:, 2, 2]
     position_se = np.sqrt(np.maximum(position_var, 0.0))
     width = np.abs(p[:, 3])
     ok = (
@@ -180,45 +183,4 @@ def fit_edges(
         rms_residual=np.sqrt(cost / np.maximum(used, 1.0)),
         position_se=position_se,
         ok=ok,
-    )
-
-
-def _solve_damped(a: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Solve every damped normal system ``a[n] @ step[n] = rhs[n]`` (``a`` ``(N, 4, 4)``,
-    symmetric positive definite; ``rhs`` ``(N, 4)``) by a Cholesky factorisation
-    vectorized over the systems; any system the factorisation fails on (a pivot not
-    positive) is solved by least squares instead."""
-    n, m = rhs.shape
-    low = np.zeros_like(a)
-    failed = np.zeros(n, dtype=bool)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for j in range(m):
-            pivot = a[:, j, j] - np.einsum("nk,nk->n", low[:, j, :j], low[:, j, :j])
-            failed |= ~(pivot > 0)
-            low[:, j, j] = np.sqrt(np.where(pivot > 0, pivot, 1.0))
-            for i in range(j + 1, m):
-                low[:, i, j] = (
-                    a[:, i, j] - np.einsum("nk,nk->n", low[:, i, :j], low[:, j, :j])
-                ) / low[:, j, j]
-        forward = np.zeros_like(rhs)
-        for i in range(m):
-            forward[:, i] = (
-                rhs[:, i] - np.einsum("nk,nk->n", low[:, i, :i], forward[:, :i])
-            ) / low[:, i, i]
-        step = np.zeros_like(rhs)
-        for i in reversed(range(m)):
-            step[:, i] = (
-                forward[:, i] - np.einsum("nk,nk->n", low[:, i + 1 :, i], step[:, i + 1 :])
-            ) / low[:, i, i]
-    for k in np.flatnonzero(failed | ~np.isfinite(step).all(axis=1)):
-        step[k] = np.linalg.lstsq(a[k], rhs[k], rcond=None)[0]
-    return step
-
-
-def _det3(m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Determinants of a stack of 3×3 matrices ``(N, 3, 3)``."""
-    return (
-        m[:, 0, 0] * (m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1])
-        - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
-        + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0])
     )

@@ -85,39 +85,3 @@ def test_samples_left_out_do_not_move_the_edge() -> None:
 def test_valid_must_match_the_profiles() -> None:
     with pytest.raises(ValueError, match="shape"):
         fit_edges(np.ones((3, 13)), valid=np.ones((3, 12), dtype=bool))
-
-
-def test_damped_systems_solved_as_lapack_does_singular_ones_by_least_squares() -> None:
-    """The Levenberg–Marquardt steps come from a Cholesky factorisation vectorized over
-    the profiles: the same steps as LAPACK's solver on positive definite systems, and a
-    least-squares step where the factorisation fails."""
-    from calibration.edge_fit import _solve_damped
-
-    rng = np.random.default_rng(3)
-    jac = rng.normal(size=(200, 13, 4)) * np.array([1.0, 300.0, 50.0, 20.0])
-    a = np.einsum("nki,nkj->nij", jac, jac) + 1e-3 * np.eye(4)[None]
-    rhs = rng.normal(size=(200, 4))
-    a[7] = 0.0  # no information at all
-    a[7, 0, 0] = 1.0
-    a[9, 2, 2] = -1.0  # not positive definite
-    step = _solve_damped(a, rhs)
-    good = np.ones(200, dtype=bool)
-    good[[7, 9]] = False
-    assert_allclose(step[good], np.linalg.solve(a[good], rhs[good][:, :, None])[:, :, 0], rtol=1e-9)
-    for k in (7, 9):
-        assert_allclose(
-            step[k], np.linalg.lstsq(a[k], rhs[k], rcond=None)[0], rtol=1e-9, atol=1e-12
-        )
-
-
-def test_position_errors_are_the_inverse_normal_matrix_entry() -> None:
-    """The reported position error is ``sqrt(σ² · (JᵀJ)⁻¹[2, 2])`` at the solution, read
-    off its cofactor (checked against the matrix inverse)."""
-    from calibration.edge_fit import _det3
-
-    rng = np.random.default_rng(4)
-    m = rng.normal(size=(50, 4, 4))
-    jtj = m @ m.transpose(0, 2, 1)
-    keep = [0, 1, 3]
-    cofactor = _det3(jtj[:, keep][:, :, keep]) / np.linalg.det(jtj)
-    assert_allclose(cofactor, np.linalg.inv(jtj)[:, 2, 2], rtol=1e-8)
