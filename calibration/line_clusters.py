@@ -24,41 +24,42 @@ def cluster_on_line(
     within clusters first (Ward's criterion on a line; on a tie the leftmost pair), so a
     cluster never spans a gap between others; once there are few enough clusters, only
     those smaller than ``min_size`` are joined, each to the cheaper of its two neighbours.
+    Costs equal to :data:`TIE_DIGITS` significant digits are ties: equally spaced values
+    (micro-images on a lattice) then cluster the same wherever the line's origin lies,
+    not by the rounding of each cost.
     """
     distinct, inverse = np.unique(values, return_inverse=True)
     per_value = np.bincount(inverse, minlength=distinct.size).astype(np.float64)
-    sums = _Sums(
-        per_value.tolist(),
-        (per_value * distinct).tolist(),
-        (per_value * distinct * distinct).tolist(),
-    )
+    sums = _Sums(per_value.tolist(), (per_value * (distinct - distinct[0])).tolist())
     alive = _join_cheapest(sums, max_groups)
     _join_small(sums, alive, min_size)
     owner = np.cumsum(alive) - 1  # cluster of each distinct value
     return np.asarray(owner[inverse], dtype=np.int64)
 
 
-class _Sums:
-    """Per cluster, keyed by its first entry: the count ``n`` and the sums ``s1``, ``s2`` of
-    the values and their squares."""
+TIE_DIGITS = 9
+"""Significant digits to which two joining costs are compared."""
 
-    def __init__(self, n: list[float], s1: list[float], s2: list[float]) -> None:
-        self.n, self.s1, self.s2 = n, s1, s2
+
+class _Sums:
+    """Per cluster, keyed by its first entry: the count ``n`` and the sum ``s1`` of the
+    values (from the smallest value)."""
+
+    def __init__(self, n: list[float], s1: list[float]) -> None:
+        self.n, self.s1 = n, s1
 
     def cost(self, a: int, b: int) -> float:
-        """Ward's cost of joining clusters ``a`` and ``b``: the growth of the spread."""
-        n, s1, s2 = self.n, self.s1, self.s2
-        within_a = s2[a] - s1[a] * s1[a] / n[a]
-        within_b = s2[b] - s1[b] * s1[b] / n[b]
-        total = s1[a] + s1[b]
-        joined = s2[a] + s2[b] - total * total / (n[a] + n[b])
-        return joined - within_a - within_b
+        """Ward's cost of joining clusters ``a`` and ``b``, the growth of the spread
+        ``n_a·n_b/(n_a + n_b)·(mean_b - mean_a)²``, to :data:`TIE_DIGITS` digits."""
+        n, s1 = self.n, self.s1
+        gap = s1[b] / n[b] - s1[a] / n[a]
+        cost = n[a] * n[b] / (n[a] + n[b]) * gap * gap
+        return float(f"{cost:.{TIE_DIGITS}g}")
 
     def join(self, a: int, b: int) -> None:
         """Cluster ``b`` into ``a``."""
         self.n[a] += self.n[b]
         self.s1[a] += self.s1[b]
-        self.s2[a] += self.s2[b]
 
 
 def _join_cheapest(sums: _Sums, max_groups: int) -> list[bool]:
