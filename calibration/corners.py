@@ -402,27 +402,23 @@ def _edge_from_blocks(
     ref = float(0.5 * (np.mean(groups[0][0]) + np.mean(groups[1][0])))
     # weighted least squares of a common slope and one intercept per block, in closed
     # form: the slope from the deviations about each block's weighted means
-    sums = []
-    for along, across, se in groups:
-        wts = 1.0 / np.maximum(se, 0.005) ** 2
-        d = along - ref
-        w_sum = float(np.sum(wts))
-        d_mean, c_mean = float(np.sum(wts * d)) / w_sum, float(np.sum(wts * across)) / w_sum
-        sums.append((wts, d, across, w_sum, d_mean, c_mean))
-    sxx = sum(float(np.sum(w * (d - dm) ** 2)) for w, d, _, _, dm, _ in sums)
-    sxy = sum(float(np.sum(w * (d - dm) * (c - cm))) for w, d, c, _, dm, cm in sums)
+    wts = [1.0 / np.maximum(se, 0.005) ** 2 for _, _, se in groups]
+    w_sums = [float(np.sum(w)) for w in wts]
+    d_means, c_means, d_dev, c_dev = [], [], [], []
+    for (along, across, _), w, w_sum in zip(groups, wts, w_sums, strict=True):
+        d_means.append(float(np.sum(w * (along - ref))) / w_sum)
+        c_means.append(float(np.sum(w * across)) / w_sum)
+        d_dev.append(along - ref - d_means[-1])
+        c_dev.append(across - c_means[-1])
+    w, dd, dc = np.concatenate(wts), np.concatenate(d_dev), np.concatenate(c_dev)
+    sxx = float(np.sum(w * dd * dd))
     if not sxx > 0.0:
         return _edge_from_blocks_lstsq(groups, ref)
-    slope = sxy / sxx
-    intercepts = [cm - slope * dm for _, _, _, _, dm, cm in sums]
-    chi2 = sum(
-        float(np.sum(w * (c - i - slope * d) ** 2))
-        for (w, d, c, _, _, _), i in zip(sums, intercepts, strict=True)
-    )
-    n_points = sum(d.size for _, d, _, _, _, _ in sums)
-    s2_unit = chi2 / max(1, n_points - 3)
+    slope = float(np.sum(w * dd * dc)) / sxx
+    intercepts = [cm - slope * dm for dm, cm in zip(d_means, c_means, strict=True)]
+    s2_unit = float(np.sum(w * (dc - slope * dd) ** 2)) / max(1, dd.size - 3)
     # variance of the mean intercept: 1/W1 + 1/W2 + (d̄1 + d̄2)²/Sxx, over four
-    var_sum = 1.0 / sums[0][3] + 1.0 / sums[1][3] + (sums[0][4] + sums[1][4]) ** 2 / sxx
+    var_sum = 1.0 / w_sums[0] + 1.0 / w_sums[1] + (d_means[0] + d_means[1]) ** 2 / sxx
     mean_se = 0.5 * float(np.sqrt(max(var_sum, 0.0) * max(s2_unit, 1.0)))
     return intercepts[0], intercepts[1], slope, mean_se, ref
 

@@ -101,10 +101,8 @@ def levels_with_tail_shape(
         shape = np.concatenate([[0.0, 1.0], slopes])  # T's coefficients on the columns
         with_shape = sums.dot(shape)  # (P, 6): each column's dot with T
         aa, ab, bb = sums.gram[:, 0, 0], with_shape[:, 0], with_shape @ shape
-        det = aa * bb - ab * ab
-        det = np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
-        vb, vc = sums.y_dot[:, 0], sums.y_dot @ shape
-        b, c = (bb * vb - ab * vc) / det, (aa * vc - ab * vb) / det
+        det = _level_det(aa, ab, bb)
+        b, c = _level_solve(aa, ab, bb, det, sums.y_dot[:, 0], sums.y_dot @ shape)
         if k == iterations:
             break
         ok = np.isfinite(det)
@@ -166,22 +164,40 @@ class _LevelBasis:
     def __init__(self, col_b: NDArray[np.float64], col_c: NDArray[np.float64]) -> None:
         self.col_b, self.col_c = col_b, col_c
         self.aa, self.ab, self.bb = _dot(col_b, col_b), _dot(col_b, col_c), _dot(col_c, col_c)
-        det = self.aa * self.bb - self.ab * self.ab
-        floor = 1e-12 * np.maximum(self.aa * self.bb, 1e-300)
-        self.det = np.where(np.abs(det) > floor, det, np.nan)
+        self.det = _level_det(self.aa, self.ab, self.bb)
 
     def solve(self, v: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Per profile, the coefficients of the two columns fitted to ``v``."""
         vb, vc = _dot(v, self.col_b), _dot(v, self.col_c)
-        return (
-            (self.bb * vb - self.ab * vc) / self.det,
-            (self.aa * vc - self.ab * vb) / self.det,
-        )
+        return _level_solve(self.aa, self.ab, self.bb, self.det, vb, vc)
 
     def residual_of(self, g: NDArray[np.float64]) -> NDArray[np.float64]:
         """``g`` less its per-profile projection onto the two columns."""
         pb, pc = self.solve(g)
         return g - pb[:, None] * self.col_b - pc[:, None] * self.col_c
+
+
+def _level_det(
+    aa: NDArray[np.float64], ab: NDArray[np.float64], bb: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Per profile, the determinant of the two level columns' normal matrix
+    ``[[aa, ab], [ab, bb]]``; NaN where it is below 1e-12 of ``aa·bb`` (no levels)."""
+    det = aa * bb - ab * ab
+    return np.where(np.abs(det) > 1e-12 * np.maximum(aa * bb, 1e-300), det, np.nan)
+
+
+def _level_solve(
+    aa: NDArray[np.float64],
+    ab: NDArray[np.float64],
+    bb: NDArray[np.float64],
+    det: NDArray[np.float64],
+    vb: NDArray[np.float64],
+    vc: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per profile, the dark level and the contrast from the normal matrix
+    ``[[aa, ab], [ab, bb]]`` (determinant ``det``) and the columns' dots ``vb``, ``vc``
+    with the data."""
+    return (bb * vb - ab * vc) / det, (aa * vc - ab * vb) / det
 
 
 def _dot(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
