@@ -18,6 +18,7 @@ from concurrent.futures import Executor
 from typing import TypeVar
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 
@@ -78,6 +79,33 @@ def _aperture_integral(
     if alpha < 1.0:
         out = out + (1.0 - alpha) * _disk_integral(t, d)
     return np.asarray(out, dtype=np.float64)
+
+
+def _aperture_rest_on_lattice(
+    lattice: NDArray[np.floating], d: NDArray[np.float64], alpha: float
+) -> NDArray[np.float64]:
+    """``∫C - max(t, 0)`` of the aperture at diameters ``d`` (one row each) on ``lattice``
+    (uniformly spaced, increasing; px).
+
+    It is zero outside the kernel, ``|t| > d/2`` (``∫C`` is 0 below it and ``t`` above), so
+    the closed forms of :func:`_aperture_integral` are evaluated only on the lattice nodes
+    within ``d/2`` (and one node either side) of each row; the rest of the row is 0.
+    """
+    n_nodes = lattice.size
+    spacing = float(lattice[1] - lattice[0])
+    half = 0.5 * np.maximum(d, 1e-9)
+    first = np.clip(np.floor((-half - lattice[0]) / spacing).astype(np.int64) - 1, 0, n_nodes)
+    last = np.clip(np.ceil((half - lattice[0]) / spacing).astype(np.int64) + 1, -1, n_nodes - 1)
+    counts = np.maximum(last - first + 1, 0)
+    rest = np.zeros((d.size, n_nodes))
+    if not counts.any():
+        return rest
+    ends = np.cumsum(counts)
+    along = np.arange(int(ends[-1])) - np.repeat(ends - counts, counts) + np.repeat(first, counts)
+    row = np.repeat(np.arange(d.size), counts)
+    t = lattice[along]
+    rest[row, along] = _aperture_integral(t, d[row], alpha) - np.maximum(t, 0.0)
+    return rest
 
 
 JITTER_NEGLIGIBLE_PX = 0.01
@@ -156,23 +184,13 @@ class DefocusDesign:
         n_cells = int(round(STATIC_HALF_PX / STATIC_STEP_PX)) + 1
         self.grid = np.arange(n_cells) * STATIC_STEP_PX
         half = np.maximum(half, 2 * self.LATTICE_PX)
-        # the four interval ends of every (observation, bin, mass), as fine-lattice positions
         g = self.grid[None, None, :]
         xb, wb = xbar[:, :, None], half[:, :, None]
         self.start = -FIT_HALF_PX - STATIC_HALF_PX - 1.0
-        ends = (xb + wb - g, xb - wb - g, xb + wb + g, xb - wb + g)
         self.n_lattice = (
             int(np.ceil(2 * (FIT_HALF_PX + STATIC_HALF_PX + 1.0) / self.LATTICE_PX)) + 2
         )
-        row_start = (np.arange(n) * self.n_lattice)[:, None, None]
-        # native-width indices: a gather with int32 indices converts them on every call
-        self.index: list[NDArray[np.intp]] = []
-        self.frac: list[NDArray[np.float32]] = []
-        for e in ends:
-            t = (e - self.start) / self.LATTICE_PX
-            j = np.floor(t)
-            self.index.append((row_start + j).astype(np.intp).ravel())
-            self.frac.append((t - j).ravel().astype(np.float32))
+        self._locate_windows(xbar + half, xbar - half, n_cells)
         self.shape = (n, n_bins, n_cells)
         self._set_blocks(blocks if pool is not None else 1)
         self.lattice = self.start + np.arange(self.n_lattice) * self.LATTICE_PX
@@ -188,24 +206,72 @@ class DefocusDesign:
             4.0 * wb
         )
 
+    def _locate_windows(
+        self, upper: NDArray[np.float64], lower: NDArray[np.float64], n_cells: int
+    ) -> None:
+        """Where each bin's interval ends ``upper`` = x̄+w and ``lower`` = x̄-w (px, per
+        observation and bin) read the lattice for every static node.
+
+        The nodes lie on the lattice (node ``i`` at ``i·node_steps`` lattice steps), so the
+        end ``x̄ ± w ∓ g_i`` sits ``∓i·node_steps`` lattice steps from ``x̄ ± w``, at the same
+        fraction of a step: over the nodes it reads a window of lattice values
+        ``node_steps`` apart, backwards for ``-g_i`` and forwards for ``+g_i``. Stored by
+        phase (:meth:`_by_phase`), the lattice holds each window contiguously; here are the
+        windows' starts within their observation's phase-ordered lattice, in the order
+        ``x̄+w-g, x̄-w-g, x̄+w+g, x̄-w+g`` (``window``), and the fractions (``window_frac``).
+        """
+        steps = STATIC_STEP_PX / self.LATTICE_PX
+        self.node_steps = int(round(steps))
+        if abs(steps - self.node_steps) > 1e-9:
+            raise ValueError("the static nodes must lie on the lattice")
+        self.n_phase_nodes = -(-self.n_lattice // self.node_steps)
+        reach = n_cells - 1
+        backward: list[NDArray[np.intp]] = []
+        forward: list[NDArray[np.intp]] = []
+        self.window_frac: list[NDArray[np.float32]] = []
+        for end in (upper, lower):
+            t = (end - self.start) / self.LATTICE_PX
+            node = np.floor(t)
+            along, phase = np.divmod(node.astype(np.intp), self.node_steps)
+            if along.min() < reach or along.max() + reach >= self.n_phase_nodes:
+                raise ValueError("a bin's interval reaches beyond the design's lattice")
+            backward.append(phase * self.n_phase_nodes + (self.n_phase_nodes - 1 - along))
+            forward.append(phase * self.n_phase_nodes + along)
+            self.window_frac.append((t - node).astype(np.float32))
+        self.window = [backward[0], backward[1], forward[0], forward[1]]
+        self.window_frac = self.window_frac * 2  # x̄+w, x̄-w, x̄+w, x̄-w
+
+    def _by_phase(
+        self, rows: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Lattice rows (one per observation) reordered by phase: the nodes ``r, r+m, r+2m,
+        ...`` (``m = node_steps``) of each row one after the other, forwards and, for the
+        backward windows, each phase reversed; as sliding windows of the static nodes'
+        count (row ``k`` of the result starts at element ``k``)."""
+        n_rows = rows.shape[0]
+        m, n_phase = self.node_steps, self.n_phase_nodes
+        padded = np.zeros((n_rows, m * n_phase), dtype=np.float32)
+        padded[:, : self.n_lattice] = rows
+        by_phase = padded.reshape(n_rows, n_phase, m).transpose(0, 2, 1)
+        n_cells = self.shape[2]
+        forward = sliding_window_view(np.ascontiguousarray(by_phase).ravel(), n_cells)
+        backward = sliding_window_view(np.ascontiguousarray(by_phase[:, :, ::-1]).ravel(), n_cells)
+        return forward, backward
+
     def _set_blocks(self, blocks: int) -> None:
-        """Cut the observations into ``blocks`` contiguous runs; each run's lattice indices
-        relative to its own first row (views of the whole arrays for a single run)."""
-        n, n_bins, n_cells = self.shape
+        """Cut the observations into ``blocks`` contiguous runs, with each run's windows
+        (:meth:`_locate_windows`) as starts in its own phase-ordered lattice."""
+        n = self.shape[0]
         bounds = np.linspace(0, n, max(1, min(blocks, n)) + 1).round().astype(int)
         self.blocks = [
             slice(int(k0), int(k1)) for k0, k1 in zip(bounds[:-1], bounds[1:], strict=True)
         ]
-        per_row = n_bins * n_cells
-        self.block_index = [
-            [j[b.start * per_row : b.stop * per_row] - b.start * self.n_lattice for j in self.index]
-            if b.start
-            else [j[: b.stop * per_row] for j in self.index]
+        per_row = self.node_steps * self.n_phase_nodes
+        self.block_window = [
+            [(w[b] + (np.arange(b.stop - b.start) * per_row)[:, None]).ravel() for w in self.window]
             for b in self.blocks
         ]
-        self.block_frac = [
-            [f[b.start * per_row : b.stop * per_row] for f in self.frac] for b in self.blocks
-        ]
+        self.block_window_frac = [[f[b].ravel() for f in self.window_frac] for b in self.blocks]
 
     def map_blocks(self, work: Callable[[int], _T]) -> list[_T]:
         """``work(k)`` of every block ``k`` (``self.blocks[k]``, a slice of the observations),
@@ -220,17 +286,16 @@ class DefocusDesign:
         """``∫C - max(t, 0)`` on the lattice of the geometric aperture at diameters ``d`` (of
         the observations ``rows``), each observation's placement jitter averaged over
         (Gauss-Hermite, where not negligible)."""
-        t = self.lattice[None, :]
-        integral = _aperture_integral(t, d[:, None], alpha)
+        integral = _aperture_rest_on_lattice(self.lattice, d, alpha)
         jitter = self.jitter[rows]
         jittered = np.flatnonzero(jitter > JITTER_NEGLIGIBLE_PX)
         if jittered.size:
+            t = self.lattice[None, :]
             dj = d[jittered, None]
             smooth = np.zeros((jittered.size, self.lattice.size))
             for node, weight in zip(*_JITTER_NODES, strict=True):
                 smooth += weight * _aperture_integral(t + node * jitter[jittered, None], dj, alpha)
-            integral[jittered] = smooth
-        integral -= np.maximum(t, 0.0)
+            integral[jittered] = smooth - np.maximum(t, 0.0)
         return integral
 
     def _wave_rest(
@@ -286,15 +351,23 @@ class DefocusDesign:
         # 12 px and lost ~1e-6 in the differences, enough to move Q0 by 0.1σ of its noise)
         # the static nodes spread (:func:`_node_spread`), in the lattice's float32
         spread = _node_spread(integral.astype(np.float32), self.LATTICE_PX)
-        flat = (spread + self.ramp_spread).ravel()
-        step = np.zeros_like(flat)
-        np.subtract(flat[1:], flat[:-1], out=step[:-1])
-        index, fractions = self.block_index[block], self.block_frac[block]
-        values = np.zeros(index[0].size, dtype=np.float32)
-        for sign, j, f in zip((1.0, -1.0, 1.0, -1.0), index, fractions, strict=True):
-            value = step.take(j)
-            value *= f
-            value += flat.take(j)
+        lattice = spread + self.ramp_spread
+        step = np.zeros_like(lattice)
+        np.subtract(lattice[:, 1:], lattice[:, :-1], out=step[:, :-1])
+        value_forward, value_backward = self._by_phase(lattice)
+        step_forward, step_backward = self._by_phase(step)
+        n_rows = (rows.stop - rows.start) * self.shape[1]
+        values = np.zeros((n_rows, self.shape[2]), dtype=np.float32)
+        for sign, window, fractions, backward in zip(
+            (1.0, -1.0, 1.0, -1.0),
+            self.block_window[block],
+            self.block_window_frac[block],
+            (True, True, False, False),
+            strict=True,
+        ):
+            value = (step_backward if backward else step_forward)[window]
+            value *= fractions[:, None]
+            value += (value_backward if backward else value_forward)[window]
             if sign > 0:
                 values += value
             else:
@@ -309,10 +382,8 @@ class DefocusDesign:
         for name in ("q", "jitter", "wave_jitter", "norm", "ramp"):
             setattr(sub, name, getattr(self, name)[keep])
         sub._ramp_rest = None if self._ramp_rest is None else self._ramp_rest[keep]
-        # lattice rows renumbered: row k of the kept ones starts at k·n_lattice
-        shift = ((keep - np.arange(keep.size)) * self.n_lattice)[:, None]
-        sub.index = [(j.reshape(self.shape[0], -1)[keep] - shift).ravel() for j in self.index]
-        sub.frac = [f.reshape(self.shape[0], -1)[keep].ravel() for f in self.frac]
+        sub.window = [w[keep] for w in self.window]
+        sub.window_frac = [f[keep] for f in self.window_frac]
         sub.shape = (keep.size, *self.shape[1:])
         sub.pool = None
         sub._set_blocks(1)

@@ -152,16 +152,18 @@ class DefocusProblem:
         ``s``, ``offset`` and ``gain``; the shift's part of the model is kept in
         ``_extra``.
         """
-        w2 = self.w[rows] ** 2
+        w = self.w[rows]
+        w2 = w * w
         v = self.v[rows]
         n_obs, n_bins, n_cells = a.shape
-        aw = np.empty_like(a)
+        aw = np.empty_like(a)  # the design weighted by the errors' inverse
         gram = np.empty((n_obs, n_cells, n_cells))
 
         def normal_equations(block: int) -> None:
             b = self.blocks[block]
-            np.multiply(a[b], w2[b, :, None], out=aw[b])
-            np.matmul(a[b].transpose(0, 2, 1), aw[b], out=gram[b])
+            np.multiply(a[b], w[b, :, None], out=aw[b])
+            # (A·w)ᵀ(A·w), one operand transposed: numpy takes BLAS's symmetric product
+            np.matmul(aw[b].transpose(0, 2, 1), aw[b], out=gram[b])
 
         self.builder.map_blocks(normal_equations)
         lam = SMOOTHNESS * self.data_scale * n_obs
@@ -175,7 +177,7 @@ class DefocusProblem:
             # s given the per-observation terms: normal equations and a sum-to-one row
             lhs = (gain * gain) @ gram.reshape(n_obs, -1)
             lhs = lhs.reshape(n_cells, n_cells) + lam * self.penalty
-            target = gain[:, None] * (v - offset[:, None] - extra)
+            target = gain[:, None] * (v - offset[:, None] - extra) * w
             rhs = target.ravel() @ aw.reshape(-1, n_cells)
             big = 1e3 * float(np.trace(lhs)) / lhs.shape[0]
             s = _nonnegative_solve(lhs + big, rhs + big)

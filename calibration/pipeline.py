@@ -32,6 +32,7 @@ from .combine import combine
 from .corners import MicroImageMap
 from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
+from .heap_reuse import reuse_freed_memory
 from .mla_grid import MlaGrid, fit_mla_grid
 from .shading import measure_shading
 from .summary import (
@@ -199,8 +200,10 @@ def _worker_init(root: str) -> None:
 
 
 def _pool_worker_init(root: str) -> None:
-    """A pool process's initializer: one BLAS thread for its life (:mod:`.blas_threads`)."""
+    """A pool process's initializer: one BLAS thread for its life (:mod:`.blas_threads`) and
+    freed array memory kept for reuse (:mod:`.heap_reuse`)."""
     single_blas_thread()
+    reuse_freed_memory()
     _worker_init(root)
 
 
@@ -254,8 +257,10 @@ def calibrate_archive(
 
     Frames are decoded and analysed in ``workers`` processes (default: one per
     core, at most 4; 1 analyses in this process). BLAS runs one thread per process
-    throughout (:mod:`calibration.blas_threads`).
+    throughout (:mod:`calibration.blas_threads`), and every process keeps its freed array
+    memory for reuse from then on (:mod:`calibration.heap_reuse`; this one too).
     """
+    reuse_freed_memory()
     with single_blas_thread():
         return _calibrate_archive(path, options=options, progress=progress, workers=workers)
 

@@ -39,6 +39,7 @@ from typing import Any
 
 from calibration.archive import read_image
 from calibration.blas_threads import single_blas_thread
+from calibration.heap_reuse import reuse_freed_memory
 from calibration.pipeline import (
     CalibrationError,
     FrameAnalyzer,
@@ -74,13 +75,15 @@ def lower_cpu_priority() -> None:
 
 def _init_worker() -> None:
     """Runs first in every worker: lower its CPU priority (:func:`lower_cpu_priority`),
-    one BLAS thread (:mod:`calibration.blas_threads`: the pool is the parallelism);
-    exit when the station process ends, even by ``kill -9``.
+    one BLAS thread (:mod:`calibration.blas_threads`: the pool is the parallelism), freed
+    array memory kept for reuse (:mod:`calibration.heap_reuse`); exit when the station
+    process ends, even by ``kill -9``.
 
     (A pool worker otherwise waits for work forever once its parent is gone.)
     """
     lower_cpu_priority()
     single_blas_thread()
+    reuse_freed_memory()
     parent = multiprocessing.parent_process()
     if parent is None:
         return
