@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .lens_grid import LensGrid
+from .random_effects import paule_mandel
 
 CORNER_SE_FLOOR_PX = 0.003
 """Smallest standard error of a micro-image corner position (px), here and in the
@@ -56,32 +57,16 @@ def _main_image(
     centres = np.column_stack([mx, my])
     positions = rows[:, 2:4]
     se = np.maximum(np.maximum(rows[:, 4], rows[:, 5]), CORNER_SE_FLOOR_PX)
-    w = 1.0 / se**2
+    # each micro-image's offset c = s - (1+Q)·m; their scatter beyond the fits' errors
+    # (positions locked to the pixel grid) is a variance every micro-image shares
+    offsets = positions - (1.0 + q) * centres
+    w = 1.0 / (se**2 + paule_mandel(offsets, se**2))
     total = float(np.sum(w))
     m_bar = w @ centres / total
     s_bar = w @ positions / total
     lever = m_bar - s_bar
     r = m_bar + lever / q
-    # each micro-image's offset c about their mean c̄ = s̄ - (1+Q)·m̄
-    offsets = (positions - s_bar) - (1.0 + q) * (centres - m_bar)
-    return r, lever, float(np.sqrt(1.0 / total) / q) * _birge_ratio(offsets, w)
-
-
-def _birge_ratio(offsets_px: NDArray[np.float64], w: NDArray[np.float64]) -> float:
-    """How much more the micro-images' offsets ``c - c̄`` (px, one row each) scatter than
-    their errors (weights ``w = 1/σ²``) say: the Birge ratio, at least 1; 1 with one
-    micro-image.
-
-    Where the pixels do not resolve the corners' edges (point-sampled or very sharp
-    micro-images) the positions lock to the pixel grid, tenths of a pixel off where each
-    fit claims thousandths; the offsets then disagree by as much, and the main image is
-    as uncertain as their scatter.
-    """
-    n = offsets_px.shape[0]
-    if n < 2:
-        return 1.0
-    chi2 = float(np.sum(w * np.sum(offsets_px**2, axis=1))) / (2.0 * (n - 1))
-    return float(np.sqrt(max(chi2, 1.0)))
+    return r, lever, float(np.sqrt(1.0 / total) / q)
 
 
 def lever_arm_inverse_magnification(
