@@ -15,6 +15,14 @@ F −0.059 % at 4σ, with the micro-image positions right to 0.003 px).
 ``Q`` per frame given by the caller (the calibrated camera's ``Q(u)``, far more precise
 than one corner's), with its uncertainty propagated through each corner's lever arm into the corners' distance; ``1/M = 2s/(|r_ref -
 r_std|·δ)``.
+
+A corner's micro-images are weighed by their fits' errors plus the variance they share
+beyond them (:func:`calibration.random_effects.paule_mandel`): where the pixels do not
+resolve the corners' edges (point samples, very sharp micro-images) the positions lock
+to the pixel grid, tenths of a pixel off where each fit claims thousandths, and the
+sharpest, most locked one claims the least. Weighed by the claims alone (scaled by the
+scatter's Birge ratio, until session 48) a renderer with one sample per pixel put F,
+the rail zero and b 3-4σ off.
 """
 
 from __future__ import annotations
