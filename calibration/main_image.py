@@ -64,11 +64,11 @@ def _main_image(
     mx, my = lens_grid.centre(rows[:, 0], rows[:, 1])
     centres = np.column_stack([mx, my])
     positions = rows[:, 2:4]
-    se = np.maximum(np.maximum(rows[:, 4], rows[:, 5]), CORNER_SE_FLOOR_PX)
+    var = np.maximum(np.maximum(rows[:, 4], rows[:, 5]), CORNER_SE_FLOOR_PX) ** 2
     # each micro-image's offset c = s - (1+Q)·m; their scatter beyond the fits' errors
     # (positions locked to the pixel grid) is a variance every micro-image shares
     offsets = positions - (1.0 + q) * centres
-    w = 1.0 / (se**2 + paule_mandel(offsets, se**2))
+    w = 1.0 / (var + paule_mandel(offsets, var))
     total = float(np.sum(w))
     m_bar = w @ centres / total
     s_bar = w @ positions / total

@@ -38,11 +38,9 @@ def paule_mandel(values: NDArray[np.floating], variances: NDArray[np.floating]) 
     freedom.
     """
     y = np.asarray(values, dtype=np.float64)
-    if y.ndim == 1:
-        y = y[:, None]
     v = np.asarray(variances, dtype=np.float64)
-    if v.shape != (y.shape[0],) or not np.all(v > 0):
-        raise ValueError("one positive variance per measurement")
+    if y.ndim != 2 or v.shape != (y.shape[0],) or not np.all(v > 0):
+        raise ValueError("values (n, d) with one positive variance per measurement")
     n, d = y.shape
     dof = float(d * (n - 1))
     if n < 2 or _scatter(y, v, 0.0) <= dof:
