@@ -74,7 +74,7 @@ class CornerOptions:
     rejected: not a corner, or two different edges."""
     blur_clearance_px: float = 3.0
     """Least distance (px) of an edge-spread profile from its corner along the edge; more
-    for blurred edges (:func:`calibration.edge_spread.corner_clearance_px`)."""
+    for blurred edges (:func:`calibration.edge_window.corner_clearance_px`)."""
     blur_radius_fraction: float = 0.7
     profile_core_half_px: int = 2
     """A corner's edge profile (all of it within the micro-image interior) leaves its samples

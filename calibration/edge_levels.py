@@ -4,7 +4,7 @@ Both readers return ``(z, C)``: every sample mapped to the unit step,
 ``z = (y - B_p)/C_p`` (0 dark, 1 light), and each profile's contrast ``C_p`` (NaN
 when a tail has fewer than 2 samples). Samples are placed at their signed distance
 ``x`` from the edge (pixels, dark side negative), one profile per row;
-``x_flat`` is where the tails start (:func:`calibration.edge_spread.flat_distance`).
+``x_flat`` is where the tails start (:func:`calibration.edge_window.flat_distance`).
 
 * :func:`levels_with_drift`: for profiles not flat-fielded, the levels of flat tails
   with a relative drift per block across the edge (vignetting and cos⁴ change the

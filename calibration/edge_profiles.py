@@ -23,7 +23,10 @@ side negative). Placing them by the lattice, not by a fit in each micro-image,
 matters when edges are sharp and sampled by few points per pixel: one
 micro-image then locates its edge only to the sample spacing (it locks to the
 pixel grid), the lattice averages that over every micro-image of the corner.
-The prediction's error, from the fit's covariance, is returned as the RMS
+Each profile also carries its half-edge: the lattice's offset moves the two
+halves of an edge by opposite amounts, so the pooled function centres each
+half-edge on its own edge (:mod:`calibration.edge_centres`). The prediction's
+error, from the fit's covariance, is returned as the RMS
 placement jitter the defocus model convolves with, with and without the part
 of the lattice's scale ``1+Q``: one frame measures its scale only to ~1e-3 on
 a sharp, point-sampled corner, which moves a profile by the scale error times
@@ -43,7 +46,8 @@ from numpy.typing import NDArray
 from .aperture_mask import ApertureMask
 from .clipping import clipped_at
 from .edge_slope import MIN_CONTRAST, refine_slope, typical_contrast
-from .edge_spread import TAIL_SAMPLES, EdgeProfiles
+from .edge_spread import EdgeProfiles
+from .edge_window import TAIL_SAMPLES
 from .flat_field import FlatField
 from .lens_grid import LensGrid
 from .placement_error import PlacementError
@@ -130,7 +134,9 @@ def half_edge_profiles(
     placement jitter (px).
 
     Block labels: one per micro-image and half-edge (A above the corner, D
-    below, on the vertical edge; B left, C right, on the horizontal edge).
+    below, on the vertical edge; B left, C right, on the horizontal edge); half-edge
+    labels ``2·edge + half`` (edge 0 vertical, 1 horizontal; half 0 before the corner,
+    1 after it).
     """
     height, width = image.shape
     radius = window.plateau_px
@@ -208,7 +214,7 @@ def half_edge_profiles(
         np.concatenate(axes),
     )
     return PlacedProfiles(
-        EdgeProfiles(x, y, block.astype(np.int64), grads @ direction),
+        EdgeProfiles(x, y, block.astype(np.int64), grads @ direction, label % 4),
         placement,
         (corrections[0], corrections[1]),
         clipped,

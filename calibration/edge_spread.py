@@ -11,7 +11,7 @@ step with levels read off its flat tails only:
 relative drift of both levels across the edge in block ``k`` (vignetting and
 cos⁴ make the brightness change across a micro-image, and the change
 multiplies dark and light alike); ``x_flat``: beyond the blur
-(:func:`flat_distance`). Profiles flat-fielded by the white image
+(:func:`~calibration.edge_window.flat_distance`). Profiles flat-fielded by the white image
 (:mod:`calibration.edge_profiles`) have no drift left and are read without it,
 their levels at fixed points of tails whose shape the frame's profiles share
 (:func:`calibration.edge_levels.levels_with_tail_shape`): a fitted drift takes the still-falling tails of a
@@ -30,10 +30,14 @@ spacing in one micro-image, and the lattice ``s = (1+Q)·m + c`` averages that
 over every micro-image of the corner. The lattice's own prediction error
 is carried as ``jitter_px``: the function this module returns is the edge
 spread convolved with that placement error, which the defocus model includes.
-The lattice's scale is the weak part of it near focus (one frame's ``Q`` to
-~1e-3 there), so the samples are also binned by their lever on that scale
-(:class:`LeverGroup`), and the sweep places them again with a scale it knows
-far better (:mod:`calibration.lattice_scale`).
+The lattice's offset errs by one draw per frame, which moves the two halves of
+each edge apart (their dark sides face opposite ways): each half-edge is
+therefore centred on its own edge, the centroid of its pooled line spread,
+before the four are pooled (:mod:`calibration.edge_centres`), and the jitter is
+what varies within a half-edge. The lattice's scale is the weak part of it near
+focus (one frame's ``Q`` to ~1e-3 there), so the samples are also binned by
+their lever on that scale (:class:`LeverGroup`), and the sweep places them again
+with a scale it knows far better (:mod:`calibration.lattice_scale`).
 
 Pooling the profiles of every micro-image with their different sub-pixel
 phases samples ``E`` far below the pixel: the result is binned in
@@ -55,34 +59,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_centres import centre_half_edges, group_means, lsf_centroid
 from .edge_levels import levels_with_drift, levels_with_tail_shape
+from .edge_window import ESF_HALF_PX, flat_distance
 from .line_clusters import cluster_on_line
 from .placement_error import PlacementError
-
-ESF_HALF_PX = 10.0
-"""Half width of the binned edge-spread function (pixels): the longest profile
-(:func:`profile_half_px`)."""
 
 ESF_BIN_PX = 0.1
 """Bin width of the binned edge-spread function (pixels)."""
 
 MIN_PROFILES = 8
 """Fewest profiles for an edge-spread function of one corner in one frame."""
-
-FLAT_SIGMAS = 4.0
-"""The tails start this many sigmas of the edge's blur (pixel included) from the edge, plus
-``FLAT_MARGIN_PX``: a blur that is not Gaussian (a defocus box) reaches farther than three
-of its sigmas."""
-
-FLAT_MARGIN_PX = 0.25
-"""Added to the tails' distance from the edge (px): half a sample of point-sampled pixels."""
-
-FLAT_RANGE_PX = (2.0, 8.0)
-"""Bounds of the tails' distance from the edge (px); the profile reaches 2 samples past it
-(:func:`profile_half_px`)."""
-
-TAIL_SAMPLES = 2
-"""Samples of each tail beyond the flat distance (at least)."""
 
 MIN_STEP_FRACTION = 0.02
 """Profiles whose step (light minus dark level, counts) is below this fraction of the corner's
@@ -101,13 +88,16 @@ class EdgeProfiles:
     block of each profile (profiles of one block share the drift terms);
     ``lever``: per profile, how far its samples move per unit error of the
     corner lattice's scale ``1+Q`` (pixels; :mod:`calibration.edge_profiles`),
-    or None when unknown.
+    or None when unknown; ``half_edge``: per profile, which of the corner's
+    half-edges it crosses (each is centred on its own edge before pooling,
+    :mod:`calibration.edge_centres`), or None when unknown.
     """
 
     x: NDArray[np.float64]
     y: NDArray[np.float64]
     block: NDArray[np.int64]
     lever: NDArray[np.float64] | None = None
+    half_edge: NDArray[np.int64] | None = None
 
     @property
     def count(self) -> int:
@@ -132,11 +122,13 @@ class EdgeProfiles:
             blocks.append(p.block + offset)
             offset += int(p.block.max()) + 1 if p.block.size else 0
         levers = [p.lever for p in parts]
+        halves = [p.half_edge for p in parts]
         return EdgeProfiles(
             np.concatenate([p.x for p in parts]),
             np.concatenate([p.y for p in parts]),
             np.concatenate(blocks),
             None if any(v is None for v in levers) else np.concatenate(levers),  # type: ignore[arg-type]
+            None if any(h is None for h in halves) else np.concatenate(halves),  # type: ignore[arg-type]
         )
 
 
@@ -335,15 +327,7 @@ class BinnedEsf:
         symmetric blur the edge itself, so it is where the function is centred. NaN
         when too few bins lie in the window.
         """
-        inside = np.abs(self.x) <= half_window_px
-        if inside.sum() < 10:
-            return float("nan")
-        x, e = self.x[inside], self.value[inside]
-        area = float(np.sum(0.5 * (e[1:] + e[:-1]) * np.diff(x)))
-        rise = float(e[-1] - e[0])
-        if rise <= 0:
-            return float("nan")
-        return (float(x[-1] * e[-1] - x[0] * e[0]) - area) / rise
+        return lsf_centroid(self.x, self.value, half_window_px=half_window_px)[0]
 
     def shifted(self, shift_px: float) -> BinnedEsf:
         """The same function with its positions moved by ``shift_px``."""
@@ -426,50 +410,6 @@ def _pooled_jitter(parts: Sequence[BinnedEsf]) -> float:
     return float(np.sqrt(np.sum(n_prof * jitter2) / max(float(np.sum(n_prof)), 1.0)))
 
 
-def flat_distance(width_px: float) -> float:
-    """Distance from the edge (px) beyond which a profile is taken as flat.
-
-    ``width_px``: the blurred-step width (Gaussian sigma before pixel integration,
-    :mod:`calibration.edge_fit`) of the frame's edges; ``FLAT_SIGMAS`` of the edge's
-    whole sigma (the pixel's ``1/√12`` added) plus ``FLAT_MARGIN_PX``, within
-    ``FLAT_RANGE_PX``.
-    """
-    lo, hi = FLAT_RANGE_PX
-    if not np.isfinite(width_px):
-        return hi
-    sigma = float(np.sqrt(width_px**2 + 1.0 / 12.0))
-    return float(np.clip(FLAT_SIGMAS * sigma + FLAT_MARGIN_PX, lo, hi))
-
-
-def corner_clearance_px(width_px: float, *, minimum_px: float) -> float:
-    """Least distance (px) from the corner, along an edge, of a profile across it: the
-    edges' :func:`flat_distance`, at least ``minimum_px``.
-
-    The corner's other edge is blurred as this one is; within its flat distance its blur
-    reaches into the profile (a defocus disk, a diffraction pattern's lobes), and its
-    light is then not a level the profile's tails can take. A fixed 3 px was less than a
-    diffraction-limited microlens's first zero (3.4 px at f/15.6) and than the defocus
-    disk's radius of most blurred frames.
-    """
-    return max(minimum_px, flat_distance(width_px))
-
-
-def profile_half_px(width_px: float, *, minimum: int, maximum: int) -> int:
-    """Half length (samples) of the profiles cut across a frame's edges: twice
-    :func:`flat_distance` of the edges' width plus ``TAIL_SAMPLES`` (tails as long as the
-    blurred part), at least ``minimum`` and at most ``maximum`` (what fits in the
-    micro-images' plateau) and ``ESF_HALF_PX``.
-
-    Blurred edges get longer profiles, so that their levels come from long tails: a
-    diffraction-limited microlens (first zero of its pattern 2.75 px at f/12.5 in green
-    light) still has a lobe 4-6 px from the edge, and levels read from ±6 px profiles put
-    ``Q0`` 0.13 % low on a Monte-Carlo sweep with that diffraction, with the renderer's
-    true ``Q`` (0.01 % with ±10 px profiles). Edges with σ ≤ 0.33 px keep the minimum.
-    """
-    wanted = int(np.ceil(2.0 * flat_distance(width_px))) + TAIL_SAMPLES
-    return int(max(minimum, min(wanted, maximum, int(ESF_HALF_PX))))
-
-
 def _bin(
     x: NDArray[np.float64], z: NDArray[np.float64], weight: NDArray[np.float64], n_profiles: int
 ) -> BinnedEsf:
@@ -523,8 +463,8 @@ def frame_esf(
     """The binned, normalised edge-spread function of pooled profiles (None if too few).
 
     ``start_width_px``: the frame's blurred-step width (Gaussian sigma, px),
-    which sets where the flat tails start (:func:`flat_distance`, at most
-    ``max_flat_px``: ``TAIL_SAMPLES`` short of the profiles' ends);
+    which sets where the flat tails start (:func:`~calibration.edge_window.flat_distance`, at most
+    ``max_flat_px``: ``edge_window.TAIL_SAMPLES`` short of the profiles' ends);
     ``jitter_px``: the RMS error of the edge positions the profiles are placed
     against, recorded with the function, and ``jitter_fixed_scale_px`` that
     error without the lattice scale's part; when the profiles carry levers the
@@ -534,10 +474,14 @@ def frame_esf(
     drift, at fixed points of the tails' shared shape
     (:func:`~calibration.edge_levels.levels_with_tail_shape`). Profiles whose
     scatter about the pooled function is far above the others' (a defect, a
-    stray edge) are dropped. ``placement``: the profiles' placement errors
+    stray edge) are dropped. When the profiles carry their half-edges, each half-edge
+    is centred on its own edge first (:func:`~calibration.edge_centres.centre_half_edges`;
+    one with too few profiles is dropped) and the levers are taken about each
+    half-edge's mean. ``placement``: the profiles' placement errors
     (:mod:`calibration.placement_error`); when given, the jitter recorded is their
     spread as this function weighs its profiles (contrast squared, the dropped ones
-    none) instead of ``jitter_px`` and ``jitter_fixed_scale_px``.
+    none), within each half-edge when they were centred and with the centres' own
+    errors, instead of ``jitter_px`` and ``jitter_fixed_scale_px``.
     """
     if prof.count < MIN_PROFILES:
         return None
@@ -550,25 +494,45 @@ def frame_esf(
     if good.sum() < MIN_PROFILES:
         return None
     weight = np.repeat(c * c, prof.x.shape[1]).reshape(prof.x.shape)
-    binned = _bin(prof.x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
+    x, lever, half_edge = prof.x, prof.lever, prof.half_edge
+    centre_spread_px2 = 0.0
+    if half_edge is not None:
+        # each half-edge on its own edge (the lattice's offset errs by one draw per frame)
+        centres = centre_half_edges(
+            x, z, weight, half_edge, usable=good, half_window_px=x_flat, min_profiles=MIN_PROFILES
+        )
+        good &= centres.kept
+        if good.sum() < MIN_PROFILES:
+            return None
+        x = x - centres.shift_px[:, None]
+        centre_spread_px2 = centres.spread_px2
+        if lever is not None:
+            lever = lever - group_means(lever[:, None], np.where(good, c * c, 0.0), half_edge)[:, 0]
+    binned = _bin(x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
     if binned.x.size < 10:
         return None
-    rms = np.sqrt(np.mean((z - np.interp(prof.x, binned.x, binned.value)) ** 2, axis=1))
+    rms = np.sqrt(np.mean((z - np.interp(x, binned.x, binned.value)) ** 2, axis=1))
     med = float(np.median(rms[good]))
     good &= rms <= 4.0 * med + 1e-9
     if good.sum() < MIN_PROFILES:
         return None
-    binned = _bin(prof.x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
+    binned = _bin(x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
     if binned.x.size < 10:
         return None
     groups: tuple[LeverGroup, ...] = ()
-    if prof.lever is not None:
-        groups = _lever_groups(prof.x[good], z[good], weight[good], prof.lever[good])
+    if lever is not None:
+        groups = _lever_groups(x[good], z[good], weight[good], lever[good])
     if placement is not None and placement.gradients.shape[0] == prof.count:
-        # the spread of the placement errors as this function weighs its profiles
+        # the spread of the placement errors as this function weighs its profiles, about
+        # each half-edge's centre when they were centred, and the centres' own errors
         pooled = np.where(good, c * c, 0.0)
-        jitter_px = placement.jitter_px(pooled)
-        jitter_fixed_scale_px = placement.jitter_px(pooled, scale_known=True)
+        jitter_px = np.hypot(
+            placement.jitter_px(pooled, groups=half_edge), np.sqrt(centre_spread_px2)
+        )
+        jitter_fixed_scale_px = np.hypot(
+            placement.jitter_px(pooled, scale_known=True, groups=half_edge),
+            np.sqrt(centre_spread_px2),
+        )
     return replace(
         binned,
         jitter_px=float(jitter_px),

@@ -33,13 +33,8 @@ from .corners import (
     measure_corners,
 )
 from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
-from .edge_spread import (
-    TAIL_SAMPLES,
-    BinnedEsf,
-    corner_clearance_px,
-    frame_esf,
-    profile_half_px,
-)
+from .edge_spread import BinnedEsf, frame_esf
+from .edge_window import TAIL_SAMPLES, corner_clearance_px, profile_half_px
 from .lens_grid import LensGrid
 from .main_image import CORNER_SE_FLOOR_PX
 from .optics import image_distance

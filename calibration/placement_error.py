@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_centres import group_means
+
 
 @dataclass(frozen=True)
 class PlacementError:
@@ -51,19 +53,26 @@ class PlacementError:
         )
 
     def jitter_px(
-        self, weights: NDArray[np.float64] | None = None, *, scale_known: bool = False
+        self,
+        weights: NDArray[np.float64] | None = None,
+        *,
+        scale_known: bool = False,
+        groups: NDArray[np.int64] | None = None,
     ) -> float:
         """RMS spread (px) of the profiles' placement errors about their common shift, the
         profiles weighted by ``weights`` (equal when None; weights that sum to 0 give 0).
         ``scale_known``: the spread left once the lattice's scale is known (its other
         parameters conditioned on it), as when the sweep places the profiles again with a
-        scale smoothed over its frames (:mod:`calibration.lattice_scale`).
+        scale smoothed over its frames (:mod:`calibration.lattice_scale`). ``groups``: a
+        label per profile when each group's common shift is taken out on its own (the
+        half-edges, each centred on its own edge: :mod:`calibration.edge_centres`); None:
+        one group.
 
         With errors ``e_p = g_p·δ``, ``δ ~ N(0, Σ)``, the weighted spread is
-        ``Σ_p w_p·g_pᵀΣg_p - ḡᵀΣḡ`` in expectation (``ḡ`` the weighted mean gradient,
-        weights normalised); the common shift ``ḡ·δ`` moves the function as a whole, which
-        the defocus model fits per function. The slopes add, per edge, their variance
-        times the weighted variance of the levers on that edge."""
+        ``Σ_p w_p·(g_p - ḡ)ᵀΣ(g_p - ḡ)`` in expectation (``ḡ`` the weighted mean gradient
+        of the profile's group, weights normalised); the common shift ``ḡ·δ`` moves the
+        group as a whole. The slopes add, per edge, their variance times the weighted
+        variance of the levers on that edge (within each group)."""
         n = self.gradients.shape[0]
         if n == 0:
             return 0.0
@@ -72,19 +81,16 @@ class PlacementError:
         if not total > 0:
             return 0.0
         w = w / total
+        label = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
         sigma = scale_known_covariance(self.covariance) if scale_known else self.covariance
-        per_profile = np.einsum("pi,ij,pj->p", self.gradients, sigma, self.gradients)
-        g_bar = w @ self.gradients
-        lattice = float(w @ per_profile) - float(g_bar @ sigma @ g_bar)
+        centred = self.gradients - group_means(self.gradients, w, label)
+        lattice = float(w @ np.einsum("pi,ij,pj->p", centred, sigma, centred))
         slopes = 0.0
         for edge in np.unique(self.axis):
             on = self.axis == edge
-            w_on = w[on]
-            if not np.sum(w_on) > 0:
-                continue
             lever = self.slope_lever_px[on]
-            mean = float(w_on @ lever) / float(np.sum(w_on))
-            slopes += float(np.sum(w_on * self.slope_var[on] * (lever - mean) ** 2))
+            lever = lever - group_means(lever[:, None], w[on], label[on])[:, 0]
+            slopes += float(np.sum(w[on] * self.slope_var[on] * lever**2))
         return float(np.sqrt(max(lattice, 0.0) + max(slopes, 0.0)))
 
 

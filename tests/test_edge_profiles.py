@@ -208,7 +208,9 @@ def test_a_wrong_lattice_scale_blurs_and_placing_again_by_lever_undoes_it() -> N
     placed = half_edge_profiles(
         frame, CornerLattice(coef=wrong, covariance=covariance), lens, image, _window()
     )
-    esf = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
+    # pooled as placed (each half-edge not centred on its own edge first)
+    unlabelled = dataclasses.replace(placed.profiles, half_edge=None)
+    esf = frame_esf(unlabelled, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
     assert esf is not None and len(esf.lever_groups) == LEVER_GROUPS
 
     # a shift common to all profiles is the defocus model's to fit: compare about each centre
@@ -225,6 +227,13 @@ def test_a_wrong_lattice_scale_blurs_and_placing_again_by_lever_undoes_it() -> N
     # and the function survives its round trip through the frame summary's JSON
     back = BinnedEsf.from_dict(esf.to_dict()).replaced(error, 0.0)
     np.testing.assert_allclose(back.value, again.value, atol=1e-5)  # JSON rounding
+    # each half-edge centred on its own edge: the scale error's part common to a half-edge
+    # is gone, what varies within one is left, and placing again by lever undoes that too
+    centred = frame_esf(placed.profiles, start_width_px=SIGMA, jitter_fixed_scale_px=0.0)
+    assert centred is not None and len(centred.lever_groups) == LEVER_GROUPS
+    assert worst(centred, SIGMA) < 0.5 * worst(esf, SIGMA)
+    centred_again = centred.replaced(error, 0.0)
+    assert worst(centred_again, float(np.hypot(SIGMA, centred_again.jitter_px))) < 0.006
 
 
 def _lattice_only(gradients: np.ndarray, sigma: np.ndarray) -> PlacementError:

@@ -13,13 +13,8 @@ import pytest
 from edge_shapes import sinc2_cdf
 from scipy.special import ndtr
 
-from calibration.edge_spread import (
-    ESF_BIN_PX,
-    BinnedEsf,
-    EdgeProfiles,
-    corner_clearance_px,
-    frame_esf,
-)
+from calibration.edge_spread import ESF_BIN_PX, BinnedEsf, EdgeProfiles, frame_esf
+from calibration.edge_window import corner_clearance_px
 
 
 def _truth(x: np.ndarray) -> np.ndarray:
