@@ -34,8 +34,9 @@ CENTRE_BIN_PX = 0.05
 """Bin width (px) of a half-edge's pooled function, whose line spread's centroid is taken."""
 
 CENTRE_ROUNDS = 3
-"""Centroids taken in turn, each in a window about the last: a window off the edge cuts
-the line spread unevenly and pulls the centroid toward the window's centre."""
+"""Centroids taken in turn, each in a window about the last (the samples binned about
+it): a window off the edge cuts the line spread unevenly and pulls the centroid toward
+the window's centre."""
 
 
 @dataclass(frozen=True)
@@ -183,8 +184,11 @@ def group_means(
     """Per row of ``values`` ``(P, k)``, the ``weights``-weighted mean of the rows with its
     ``label`` (0 for a group without weight)."""
     _, index = np.unique(label, return_inverse=True)
-    sums = np.zeros((int(index.max()) + 1, values.shape[1]))
-    np.add.at(sums, index, weights[:, None] * values)
-    total = np.bincount(index, weights=weights, minlength=sums.shape[0])
+    groups = int(index.max()) + 1
+    total = np.bincount(index, weights=weights, minlength=groups)
+    sums = np.stack(
+        [np.bincount(index, weights=weights * column, minlength=groups) for column in values.T],
+        axis=1,
+    )
     means = np.divide(sums, total[:, None], out=np.zeros_like(sums), where=total[:, None] > 0)
     return np.asarray(means[index], dtype=np.float64)
