@@ -95,8 +95,8 @@ def lsf_centroid(
     # the levels (each level the mean of its points)
     gradient = np.zeros(x.size)
     gradient[index] = -d_area / rise
-    np.add.at(gradient, below, (span / rise - area / rise**2) / below.size)
-    np.add.at(gradient, above, (area / rise**2) / above.size)
+    gradient[below] += (span / rise - area / rise**2) / below.size
+    gradient[above] += (area / rise**2) / above.size
     return centre, float(np.sqrt(np.sum((gradient * se) ** 2)))
 
 
