@@ -30,6 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_bins import bin_means
+from .edge_window import ESF_HALF_PX
+
 CENTRE_BIN_PX = 0.05
 """Bin width (px) of a half-edge's pooled function, whose line spread's centroid is taken."""
 
@@ -100,30 +103,6 @@ def lsf_centroid(
     return centre, float(np.sqrt(np.sum((gradient * se) ** 2)))
 
 
-def _binned(
-    x: NDArray[np.float64], value: NDArray[np.float64], weight: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """The samples in ``CENTRE_BIN_PX`` bins: mean position, weighted mean value and its
-    standard error (from the bin's scatter; the median of the others' where a bin holds
-    one sample), ascending, empty bins left out."""
-    index = np.floor(x / CENTRE_BIN_PX).astype(np.int64)
-    index -= index.min()
-    count = np.bincount(index)
-    sw = np.bincount(index, weights=weight)
-    filled = (count > 0) & (sw > 0)
-    safe = np.where(sw > 0, sw, 1.0)
-    mean_x = np.bincount(index, weights=x) / np.maximum(count, 1)
-    mean_v = np.bincount(index, weights=weight * value) / safe
-    var = np.bincount(index, weights=weight * (value - mean_v[index]) ** 2) / safe
-    # the weighted mean's standard error: the scatter over the effective sample count
-    n_eff = sw**2 / np.maximum(np.bincount(index, weights=weight**2), 1e-300)
-    se = np.sqrt(var / np.maximum(n_eff - 1.0, 1.0))
-    several = filled & (count > 1)
-    fallback = float(np.median(se[several])) if several.any() else 0.0
-    se = np.where(several, se, fallback)
-    return mean_x[filled], mean_v[filled], se[filled]
-
-
 def centre_half_edges(
     x: NDArray[np.float64],
     value: NDArray[np.float64],
@@ -158,8 +137,8 @@ def centre_half_edges(
         xs, vs, ws = x[sel].ravel(), value[sel].ravel(), weight[sel].ravel()
         centre, se = 0.0, float("nan")
         for _ in range(CENTRE_ROUNDS):
-            bx, bv, bse = _binned(xs - centre, vs, ws)
-            step, se = lsf_centroid(bx, bv, half_window_px=half_window_px, se=bse)
+            bins = bin_means(xs - centre, vs, ws, bin_px=CENTRE_BIN_PX, half_px=ESF_HALF_PX)
+            step, se = lsf_centroid(bins.x, bins.value, half_window_px=half_window_px, se=bins.se)
             if not np.isfinite(step):
                 break
             centre += step

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .edge_bins import bin_means
 from .edge_centres import centre_half_edges, group_means, lsf_centroid
 from .edge_levels import levels_with_drift, levels_with_tail_shape
 from .edge_window import ESF_HALF_PX, flat_distance
@@ -413,40 +414,11 @@ def _pooled_jitter(parts: Sequence[BinnedEsf]) -> float:
 def _bin(
     x: NDArray[np.float64], z: NDArray[np.float64], weight: NDArray[np.float64], n_profiles: int
 ) -> BinnedEsf:
-    """Weighted bin means of ``z`` at positions ``x`` (every array flattened)."""
-    edges = np.arange(-ESF_HALF_PX, ESF_HALF_PX + 0.5 * ESF_BIN_PX, ESF_BIN_PX)
-    n_bins = edges.size - 1
-    idx = np.floor((x - edges[0]) / ESF_BIN_PX).astype(np.int64)
-    inside = (idx >= 0) & (idx < n_bins) & np.isfinite(z)
-    idx, xs, zs, ws = idx[inside], x[inside], z[inside], weight[inside]
-    count = np.bincount(idx, minlength=n_bins)
-    sw = np.bincount(idx, ws, n_bins)
-    sw2 = np.bincount(idx, ws * ws, n_bins)
-    swx = np.bincount(idx, ws * xs, n_bins)
-    swz = np.bincount(idx, ws * zs, n_bins)
-    keep = count >= 3
-    mean_x = swx[keep] / sw[keep]
-    mean_z = swz[keep] / sw[keep]
-    # weighted scatter about the bin mean, after removing the slope within the bin
-    dev = zs - (swz / np.maximum(sw, 1e-300))[idx]
-    dx = xs - (swx / np.maximum(sw, 1e-300))[idx]
-    sdx = np.bincount(idx, ws * dx * dx, n_bins)
-    sdz = np.bincount(idx, ws * dx * dev, n_bins)
-    slope = np.where(sdx > 0, sdz / np.maximum(sdx, 1e-300), 0.0)
-    resid = dev - slope[idx] * dx
-    var = np.bincount(idx, ws * resid * resid, n_bins) / np.maximum(sw, 1e-300)
-    # standard error of a weighted mean: sqrt(var · Σw² / (Σw)²), with n/(n-2) for the slope
-    n_eff = sw * sw / np.maximum(sw2, 1e-300)
-    se = np.sqrt(var * count / np.maximum(count - 2, 1) / np.maximum(n_eff, 1.0))
-    x_sd = np.sqrt(sdx[keep] / sw[keep])
+    """Weighted bin means of ``z`` at positions ``x`` (every array flattened;
+    :func:`~calibration.edge_bins.bin_means` in ``ESF_BIN_PX`` bins over ``±ESF_HALF_PX``)."""
+    bins = bin_means(x, z, weight, bin_px=ESF_BIN_PX, half_px=ESF_HALF_PX)
     return BinnedEsf(
-        mean_x,
-        mean_z,
-        se[keep],
-        count[keep].astype(np.int64),
-        n_profiles,
-        x_sd,
-        weight=np.asarray(sw[keep], dtype=np.float64),
+        bins.x, bins.value, bins.se, bins.count, n_profiles, bins.x_sd, weight=bins.weight
     )
 
 
