@@ -1,4 +1,4 @@
-"""Weighted bin means of an edge's samples, each with its standard error.
+"""Weighted bin means of an edge's samples, each with its standard error, and weighted means by group.
 
 The samples of many profiles of an edge (positions ``x`` in pixels from the edge, dark
 side negative; normalised values, 0 dark and 1 light; weights) are pooled into bins of a
@@ -82,3 +82,21 @@ def bin_means(
         weight=np.asarray(sw[keep], dtype=np.float64),
         x_sd=np.sqrt(sdx[keep] / sw[keep]),
     )
+
+
+def group_means(
+    values: NDArray[np.float64], weights: NDArray[np.float64], label: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Per entry of ``values`` (``(P,)`` or rows of ``(P, k)``), the ``weights``-weighted mean
+    of the entries with its ``label``, in the shape of ``values`` (0 for a group without
+    weight)."""
+    columns = values.reshape(values.shape[0], -1)
+    _, index = np.unique(label, return_inverse=True)
+    groups = int(index.max()) + 1
+    total = np.bincount(index, weights=weights, minlength=groups)
+    sums = np.stack(
+        [np.bincount(index, weights=weights * column, minlength=groups) for column in columns.T],
+        axis=1,
+    )
+    means = np.divide(sums, total[:, None], out=np.zeros_like(sums), where=total[:, None] > 0)
+    return np.asarray(means[index], dtype=np.float64).reshape(values.shape)

@@ -155,19 +155,3 @@ def centre_half_edges(
         # E[Σ w_h ε_h² - (Σ w_h ε_h)²] for independent centroid errors ε_h
         spread = float(np.sum(w * var) - np.sum(w**2 * var))
     return HalfEdgeCentres(shift, kept, spread)
-
-
-def group_means(
-    values: NDArray[np.float64], weights: NDArray[np.float64], label: NDArray[np.int64]
-) -> NDArray[np.float64]:
-    """Per row of ``values`` ``(P, k)``, the ``weights``-weighted mean of the rows with its
-    ``label`` (0 for a group without weight)."""
-    _, index = np.unique(label, return_inverse=True)
-    groups = int(index.max()) + 1
-    total = np.bincount(index, weights=weights, minlength=groups)
-    sums = np.stack(
-        [np.bincount(index, weights=weights * column, minlength=groups) for column in values.T],
-        axis=1,
-    )
-    means = np.divide(sums, total[:, None], out=np.zeros_like(sums), where=total[:, None] > 0)
-    return np.asarray(means[index], dtype=np.float64)

@@ -59,8 +59,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .edge_bins import bin_means
-from .edge_centres import centre_half_edges, group_means, lsf_centroid
+from .edge_bins import bin_means, group_means
+from .edge_centres import centre_half_edges, lsf_centroid
 from .edge_levels import levels_with_drift, levels_with_tail_shape
 from .edge_window import ESF_HALF_PX, flat_distance
 from .line_clusters import cluster_on_line
@@ -479,7 +479,7 @@ def frame_esf(
         x = x - centres.shift_px[:, None]
         centre_spread_px2 = centres.spread_px2
         if lever is not None:
-            lever = lever - group_means(lever[:, None], np.where(good, c * c, 0.0), half_edge)[:, 0]
+            lever = lever - group_means(lever, np.where(good, c * c, 0.0), half_edge)
     binned = _bin(x[good].ravel(), z[good].ravel(), weight[good].ravel(), int(good.sum()))
     if binned.x.size < 10:
         return None
@@ -498,12 +498,10 @@ def frame_esf(
         # the spread of the placement errors as this function weighs its profiles, about
         # each half-edge's centre when they were centred, and the centres' own errors
         pooled = np.where(good, c * c, 0.0)
-        jitter_px = np.hypot(
-            placement.jitter_px(pooled, groups=half_edge), np.sqrt(centre_spread_px2)
-        )
+        centres_px = np.sqrt(centre_spread_px2)
+        jitter_px = np.hypot(placement.jitter_px(pooled, groups=half_edge), centres_px)
         jitter_fixed_scale_px = np.hypot(
-            placement.jitter_px(pooled, scale_known=True, groups=half_edge),
-            np.sqrt(centre_spread_px2),
+            placement.jitter_px(pooled, scale_known=True, groups=half_edge), centres_px
         )
     return replace(
         binned,

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .edge_centres import group_means
+from .edge_bins import group_means
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ class PlacementError:
         for edge in np.unique(self.axis):
             on = self.axis == edge
             lever = self.slope_lever_px[on]
-            lever = lever - group_means(lever[:, None], w[on], label[on])[:, 0]
+            lever = lever - group_means(lever, w[on], label[on])
             slopes += float(np.sum(w[on] * self.slope_var[on] * lever**2))
         return float(np.sqrt(max(lattice, 0.0) + max(slopes, 0.0)))
 
