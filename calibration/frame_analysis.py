@@ -25,13 +25,8 @@ from numpy.typing import NDArray
 
 from .aperture_mask import ApertureMask
 from .board import Board
-from .corners import (
-    CornerMeasurement,
-    CornerOptions,
-    MicroImageMap,
-    find_junctions,
-    measure_corners,
-)
+from .corner_candidates import MicroImageMap, find_junctions
+from .corners import CornerMeasurement, CornerOptions, measure_corners
 from .edge_profiles import CornerLattice, ProfileWindow, half_edge_profiles
 from .edge_spread import BinnedEsf, frame_esf
 from .edge_window import TAIL_SAMPLES, corner_clearance_px, profile_half_px

@@ -29,7 +29,7 @@ from .blas_threads import single_blas_thread
 from .camera_model import ModelError, check_priors
 from .clipping import OverexposedWhiteError, check_white_exposure
 from .combine import combine
-from .corners import MicroImageMap
+from .corner_candidates import MicroImageMap
 from .edge_spread import BinnedEsf
 from .frame_analysis import CornerFit, FrameContext, analyze_frame
 from .heap_reuse import reuse_freed_memory

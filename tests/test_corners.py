@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from calibration.corners import CornerOptions, MicroImageMap
+from calibration.corner_candidates import MicroImageMap
+from calibration.corners import CornerOptions
 from calibration.frame_analysis import FrameContext, analyze_frame
 from calibration.presets import get_preset
 from calibration.sim_sweep import fit_frame
