@@ -24,8 +24,8 @@ from calibration.defocus import (
     EdgeObservation,
     blur_model_warning,
     fit_defocus,
-    sweep_corners,
 )
+from calibration.defocus_corners import sweep_corners
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 from calibration.result_notes import aperture_scale_warning
 
