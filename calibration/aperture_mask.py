@@ -153,7 +153,7 @@ class _Patches:
         values = img[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)] - ff.background
         dx, dy = cols - cx[:, None, None], rows - cy[:, None, None]
         rr = dx * dx + dy * dy
-        log_w = gx[:, None, None] * dx + gy[:, None, None] * dy - 0.5 * ff.curvature_px2 * rr
+        log_w = ff.log_shading((dx, dy), (gx[:, None, None], gy[:, None, None]))
         disc = (rr <= self.plateau_px**2) & on_sensor
         # averaged over the plateau only (normalised convolution): the rim beyond it falls
         filled = np.where(disc, values * np.exp(-log_w), 0.0)

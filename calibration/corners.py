@@ -21,7 +21,9 @@ For every micro-image that shows a board corner:
    divided by the white image's shading about the micro-image when there is one
    (``CornerOptions.flat_field``): a level that falls across an edge moves the
    fitted step, and the bowl of cos⁴ and vignetting falls radially, so it pulled
-   every corner towards its micro-image's centre and read ``Q`` low;
+   every corner towards its micro-image's centre and read ``Q`` low (beyond the
+   fully lit plateau the bowl is the white's measured fall, not the plateau's
+   paraboloid: the rims blurred inwards by diffraction read ``Q`` 0.1 % low);
 4. **corner**: ``x = (x̄_A + x̄_D)/2``, ``y = (ȳ_B + ȳ_C)/2`` (Eq. 6 with equal
    weight per side; a common slope per edge absorbs a small board tilt). Equal
    side weights keep the reference corner unbiased: its edges jog by ``±Cr/2``

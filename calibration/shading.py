@@ -33,26 +33,29 @@ every micro-image (19× the rays' cos⁴ on a Monte-Carlo white image with a
 diffraction-limited microlens at f/15.6) but no tilt (the tilt gave the cos⁴ value
 within 4 %). When the two disagree, the tilt is the angular shading.
 
-The same white image says where that interior ends (:func:`measure_plateau`):
-a pixel sees its whole microlens aperture only while the aperture's footprint on
-the main lens fits inside the main aperture; beyond that radius the white image
-falls off, and a defocused edge there is blurred by a clipped aperture (a
-smaller, lopsided kernel). For f-number-matched optics that radius is about
-``1 - √2·(Q0 - b/L)`` of the half pitch for square lenses, 0.6-0.8 for the
-cameras of the benchmarks; the edge spread (:mod:`calibration.edge_spread`)
-uses only profiles inside it.
+The same white image says where that interior ends, and how it falls beyond
+(:mod:`calibration.white_rings`): the flat field edge profiles are divided by
+(:meth:`WhiteShading.flat_field`) is the paraboloid of ``c`` on the plateau and the
+measured fall beyond it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .flat_field import FlatField
 from .lens_grid import LensGrid
+from .white_rings import white_rings
+from .white_samples import (
+    MicroImageSamples,
+    micro_image_samples,
+    per_image_fit,
+    residual_after,
+)
 
 INTERIOR_FRACTION = 0.6
 """Radius of the fully lit interior used, as a fraction of half the micro-image pitch."""
@@ -73,25 +76,6 @@ bent by the rims (see :meth:`WhiteShading.angular_curvature`)."""
 TILT_MIN_MICRO_IMAGES = 10
 """Fewest micro-images for a curvature from their tilt."""
 
-PLATEAU_INNER_FRACTION = 0.45
-"""The part of a micro-image (fraction of half its pitch) taken as lit for certain: the
-smooth shading fitted there is extrapolated outwards to find where the plateau ends."""
-
-PLATEAU_MAX_FRACTION = 0.95
-"""The plateau is searched out to this fraction of half the micro-image pitch."""
-
-PLATEAU_TOLERANCE = 1e-3
-"""The plateau ends where the white image falls this far (relative) below its smooth
-shading: an aperture clipped by 0.1 % changes a defocus kernel's variance by ~0.3 %
-in the few profiles that reach there."""
-
-PLATEAU_BIN_PX = 0.5
-"""Radial bin of the plateau search (pixels)."""
-
-PLATEAU_MAX_MICRO_IMAGES = 200
-"""The plateau is measured on at most this many micro-images (evenly spread): a 0.5 px
-ring of 200 micro-images of 20 px radius holds ~12 000 pixels, enough to see 1e-3."""
-
 
 @dataclass(frozen=True)
 class WhiteShading:
@@ -110,6 +94,10 @@ class WhiteShading:
     """The curvature from the tilt of the micro-images across the sensor (NaN: not measured,
     e.g. no lens grid given or too few micro-images off the axis)."""
     tilt_curvature_se_px2: float = float("nan")
+    radial_px: tuple[float, ...] = ()
+    """The micro-images' mean radial profile of ``log W`` (:attr:`radial_log_w`) at these
+    radii (px from their centres; empty: not measured)."""
+    radial_log_w: tuple[float, ...] = ()
 
     @property
     def radially_consistent(self) -> bool:
@@ -179,6 +167,8 @@ class WhiteShading:
             curvature_px2=self.curvature_px2,
             background=float(background),
             tilt_curvature_px2=float(tilt) if np.isfinite(tilt) else 0.0,
+            radial_px=self.radial_px,
+            radial_log_w=self.radial_log_w,
         )
 
     def bias_coefficient(self, aperture_variance_px2: float) -> float:
@@ -224,9 +214,17 @@ def measure_shading(
     curvature is fitted inside ``INTERIOR_FRACTION`` of the half pitch, or inside the
     plateau when that ends sooner.
     """
-    plateau = measure_plateau(white, image_grid, background=background, unvignetted=unvignetted)
+    rings = white_rings(white, image_grid, background, unvignetted)
+    plateau = float("nan") if rings is None else rings.plateau_fraction()
     fraction = INTERIOR_FRACTION if not np.isfinite(plateau) else min(INTERIOR_FRACTION, plateau)
-    samples = _samples(white, image_grid, background, fraction, unvignetted=unvignetted)
+    samples = micro_image_samples(
+        white,
+        image_grid,
+        background,
+        fraction,
+        max_images=MAX_MICRO_IMAGES,
+        unvignetted=unvignetted,
+    )
     if samples is None:
         return WhiteShading(float("nan"), float("nan"), 0, plateau)
     dx, dy, good = samples.dx, samples.dy, samples.good
@@ -242,6 +240,9 @@ def measure_shading(
         if lens_grid is None
         else _tilt_curvature(samples, logv, image_grid, lens_grid)
     )
+    radial_px, radial_log_w = (
+        ((), ()) if rings is None else rings.bowl(curvature, plateau * 0.5 * image_grid.pitch_px)
+    )
     return WhiteShading(
         curvature_px2=curvature,
         curvature_se_px2=se,
@@ -251,11 +252,13 @@ def measure_shading(
         inner_curvature_se_px2=inner_se,
         tilt_curvature_px2=tilt,
         tilt_curvature_se_px2=tilt_se,
+        radial_px=radial_px,
+        radial_log_w=radial_log_w,
     )
 
 
 def _tilt_curvature(
-    samples: _Samples, logv: NDArray[np.float64], image_grid: LensGrid, lens_grid: LensGrid
+    samples: MicroImageSamples, logv: NDArray[np.float64], image_grid: LensGrid, lens_grid: LensGrid
 ) -> tuple[float, float]:
     """``c`` from the tilt of the micro-images: the gradient of ``log W`` at each centre
     ``c_i`` is ``g_0 - c·(c_i - m_i)`` (``m_i`` its lens centre; ``g_0`` a common tilt),
@@ -265,7 +268,7 @@ def _tilt_curvature(
     from the residual scatter (px⁻²; NaN when the offsets do not determine it).
     """
     dx, dy, good = samples.dx, samples.dy, samples.good
-    coef, _ = _per_image_fit(logv, [np.ones_like(dx), dx, dy, dx * dx + dy * dy], good)
+    coef, _ = per_image_fit(logv, [np.ones_like(dx), dx, dy, dx * dx + dy * dy], good)
     n = samples.n_images
     counts = good.reshape(n, -1).sum(axis=1)
     usable = counts >= 0.8 * np.max(counts, initial=0)
@@ -309,8 +312,8 @@ def _curvature(
     the pixels do not determine it)."""
     rr = dx * dx + dy * dy
     regs = [np.ones_like(dx), dx, dy]
-    y = _residual_after(logv, regs, good)
-    x = _residual_after(rr, regs, good)
+    y = residual_after(logv, regs, good)
+    x = residual_after(rr, regs, good)
     sxx = float(np.sum(np.where(good, x * x, 0.0)))
     if sxx <= 0:
         return float("nan"), float("nan")
@@ -321,149 +324,3 @@ def _curvature(
     sigma2 = float(np.sum(resid * resid) / dof)
     # pixels of one micro-image share its noise only through the fitted level: independent
     return -2.0 * slope, 2.0 * float(np.sqrt(sigma2 / sxx))
-
-
-def measure_plateau(
-    white: NDArray[Any],
-    image_grid: LensGrid,
-    *,
-    background: float = 0.0,
-    unvignetted: tuple[tuple[float, float], float] | None = None,
-) -> float:
-    """Radius where the micro-images of a white image stop being fully lit (fraction of
-    half the micro-image pitch; NaN when it cannot be measured).
-
-    Each micro-image's ``log W`` is fitted with a level, a gradient and a
-    curvature inside ``PLATEAU_INNER_FRACTION``; the ratio of the image to that
-    smooth shading, averaged over the micro-images in radial bins of
-    ``PLATEAU_BIN_PX``, stays at 1 on the plateau. The plateau ends at the
-    inner edge of the first bin whose mean falls more than ``PLATEAU_TOLERANCE``
-    (or three of its standard errors, in a noisy white image) below 1;
-    ``PLATEAU_MAX_FRACTION`` when none does. ``unvignetted``: as for
-    :func:`measure_shading`.
-    """
-    samples = _samples(
-        white,
-        image_grid,
-        background,
-        PLATEAU_MAX_FRACTION,
-        max_images=PLATEAU_MAX_MICRO_IMAGES,
-        unvignetted=unvignetted,
-    )
-    if samples is None:
-        return float("nan")
-    dx, dy, good = samples.dx, samples.dy, samples.good
-    half = 0.5 * image_grid.pitch_px
-    rr = dx * dx + dy * dy
-    inner = good & (rr <= (PLATEAU_INNER_FRACTION * half) ** 2)
-    logv = samples.log_values()
-    regs = [np.ones_like(dx), dx, dy, rr]
-    n = samples.n_images
-    coef, _ = _per_image_fit(logv, regs, inner)
-    full = np.stack([r.reshape(n, -1) for r in regs], axis=2)
-    ratio = np.exp(logv.reshape(n, -1) - (full @ coef)[:, :, 0])
-    radius = np.sqrt(rr).reshape(n, -1)
-    use = good.reshape(n, -1)
-    edges = np.arange(PLATEAU_INNER_FRACTION * half, PLATEAU_MAX_FRACTION * half, PLATEAU_BIN_PX)
-    which = np.digitize(radius[use], edges) - 1
-    vals = ratio[use]
-    inside = (which >= 0) & (which < edges.size - 1)
-    which, vals = which[inside], vals[inside]
-    count = np.bincount(which, minlength=edges.size - 1)
-    total = np.bincount(which, weights=vals, minlength=edges.size - 1)
-    total2 = np.bincount(which, weights=vals * vals, minlength=edges.size - 1)
-    for b in np.flatnonzero(count >= 10):
-        mean = total[b] / count[b]
-        var = max(0.0, total2[b] / count[b] - mean * mean)
-        se = float(np.sqrt(var / count[b]))
-        if float(mean) < 1.0 - max(PLATEAU_TOLERANCE, 3.0 * se):
-            return float(edges[b] / half)
-    return PLATEAU_MAX_FRACTION
-
-
-class _Samples(NamedTuple):
-    """White-image pixels of some micro-images, arrays ``(micro-image, row, column)``:
-    offsets from the micro-image centre (px), values (background subtracted), the usable
-    mask; and the micro-images' lattice indices."""
-
-    dx: NDArray[np.float64]
-    dy: NDArray[np.float64]
-    values: NDArray[np.float64]
-    good: NDArray[np.bool_]
-    ii: NDArray[np.int64]
-    jj: NDArray[np.int64]
-
-    @property
-    def n_images(self) -> int:
-        return int(self.ii.size)
-
-    def log_values(self) -> NDArray[np.float64]:
-        """``log W`` on the usable pixels, 0 elsewhere."""
-        return np.where(self.good, np.log(np.maximum(self.values, 1e-9)), 0.0)
-
-
-def _samples(
-    white: NDArray[Any],
-    image_grid: LensGrid,
-    background: float,
-    fraction: float,
-    *,
-    max_images: int = MAX_MICRO_IMAGES,
-    unvignetted: tuple[tuple[float, float], float] | None = None,
-) -> _Samples | None:
-    """Pixels within ``fraction`` of half the pitch of up to ``max_images`` lit
-    micro-images (evenly spread over the sensor, within ``unvignetted``'s radius of its
-    principal point when given)."""
-    img = np.asarray(white, dtype=np.float64) - background
-    h, w = img.shape
-    pitch = image_grid.pitch_px
-    radius = fraction * 0.5 * pitch
-    ii, jj = image_grid.indices_in(w, h, margin_px=radius + 1)
-    if unvignetted is not None and ii.size:
-        (px, py), limit = unvignetted
-        cx, cy = image_grid.centre(ii, jj)
-        inside = np.hypot(cx - px, cy - py) <= limit
-        ii, jj = ii[inside], jj[inside]
-    if ii.size == 0:
-        return None
-    keep = np.linspace(0, ii.size - 1, min(max_images, ii.size)).astype(np.int64)
-    ii, jj = ii[keep], jj[keep]
-    cx, cy = image_grid.centre(ii, jj)
-    r = int(np.ceil(radius))
-    oy, ox = np.mgrid[-r : r + 1, -r : r + 1]
-    # per micro-image: pixels of its disc about its (sub-pixel) centre
-    x0 = np.rint(cx).astype(np.int64)
-    y0 = np.rint(cy).astype(np.int64)
-    xs = x0[:, None, None] + ox[None]
-    ys = y0[:, None, None] + oy[None]
-    dx = xs - cx[:, None, None]
-    dy = ys - cy[:, None, None]
-    inside = (dx * dx + dy * dy) <= radius * radius
-    values = img[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
-    core = inside & ((dx * dx + dy * dy) <= (0.3 * pitch) ** 2)
-    level = np.nanmedian(np.where(core, values, np.nan).reshape(ii.size, -1), axis=1)
-    lit = level > 0.2 * np.nanmax(level)
-    good = inside & (values > 0.3 * level[:, None, None]) & lit[:, None, None]
-    return _Samples(dx, dy, values, good, ii, jj)
-
-
-def _per_image_fit(
-    values: NDArray[np.float64], regressors: list[NDArray[np.float64]], mask: NDArray[np.bool_]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Least squares of ``values`` on ``regressors`` per micro-image (first axis) over the
-    ``mask``ed pixels: the coefficients ``(n, k, 1)`` and the masked values minus the fit
-    ``(n, pixels)``."""
-    n = values.shape[0]
-    k = len(regressors)
-    a = np.stack([np.where(mask, r, 0.0).reshape(n, -1) for r in regressors], axis=2)
-    v = np.where(mask, values, 0.0).reshape(n, -1)
-    at = np.swapaxes(a, 1, 2)
-    coef = np.linalg.solve(at @ a + 1e-12 * np.eye(k)[None], at @ v[:, :, None])
-    return coef, v - (a @ coef)[:, :, 0]
-
-
-def _residual_after(
-    values: NDArray[np.float64], regressors: list[NDArray[np.float64]], mask: NDArray[np.bool_]
-) -> NDArray[np.float64]:
-    """``values`` minus their per-micro-image least-squares fit on ``regressors`` (masked)."""
-    return _per_image_fit(values, regressors, mask)[1].reshape(values.shape)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from calibration.lens_grid import LensGrid
-from calibration.shading import measure_plateau, measure_shading
+from calibration.shading import measure_shading
+from calibration.white_rings import measure_plateau
 
 PITCH_PX = 60.0
 SCALE = 1.05  # micro-image centres lie (L+b)/L farther from the principal point
@@ -79,23 +80,55 @@ def test_a_dark_frame_gives_no_measurement() -> None:
     assert found.micro_images == 0 or not np.isfinite(found.curvature_px2)
 
 
+def _falling_beyond(white: np.ndarray, image: LensGrid, plateau: float) -> np.ndarray:
+    """``white`` (dark level 40) falling linearly from ``plateau`` (fraction of half the
+    pitch) to zero at the micro-images' rims."""
+    h, w = white.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    i, j = image.nearest(xs, ys)
+    cx, cy = image.centre(i, j)
+    r = np.hypot(xs - cx, ys - cy) / (0.5 * image.pitch_px)
+    return (white - 40.0) * np.clip(1.0 - (r - plateau) / (1.0 - plateau), 0.0, 1.0) + 40.0
+
+
 @pytest.mark.parametrize("plateau", [0.55, 0.7])
 def test_the_fully_lit_plateau_ends_where_the_white_image_falls_off(plateau: float) -> None:
     """Beyond the plateau the microlens aperture is clipped by the main aperture and the
     white image falls (here linearly to the rim); the shading inside must not be taken for it."""
     white, image = _white(3e-6, seed=2)
-    h, w = white.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(float)
-    i, j = image.nearest(xs, ys)
-    cx, cy = image.centre(i, j)
     half = 0.5 * image.pitch_px
-    r = np.hypot(xs - cx, ys - cy) / half
-    clip = np.clip(1.0 - (r - plateau) / (1.0 - plateau), 0.0, 1.0)
-    lit = (white - 40.0) * clip + 40.0
+    lit = _falling_beyond(white, image, plateau)
     found = measure_plateau(lit, image, background=40.0)
     # the first 0.5 px bin that has fallen by 0.1 % starts within a bin of the true edge
     assert plateau - 0.5 / half - 0.01 <= found <= plateau + 0.01
     assert measure_shading(lit, image, background=40.0).plateau_fraction == found
+
+
+@pytest.mark.parametrize("plateau", [0.55, 0.7])
+def test_the_flat_field_follows_the_white_s_fall_beyond_the_plateau(plateau: float) -> None:
+    """On the plateau the flat field is the curvature's paraboloid; beyond it, where the white
+    falls (here linearly to the rim), the rings' measured fall, continuing from the
+    paraboloid: within 1 % of the white's own ``log W`` wherever it keeps 40 % of its light."""
+    curvature = 3e-6
+    white, image = _white(curvature, seed=6, noise=0.002)
+    half = 0.5 * image.pitch_px
+    lit = _falling_beyond(white, image, plateau)
+    found = measure_shading(lit, image, background=40.0)
+    flat = found.flat_field(40.0)
+    assert flat is not None and flat.radial_px
+    radius = np.linspace(0.0, 0.95 * half, 200)
+    fall = np.clip(1.0 - (radius / half - plateau) / (1.0 - plateau), 0.0, 1.0)
+    measured = radius <= found.radial_px[-1]
+    assert np.all(measured[fall >= 0.4])  # the rings reach wherever 40 % of the light is left
+    zero = (np.zeros_like(radius), np.zeros_like(radius))
+    bowl = flat.log_shading((radius, np.zeros_like(radius)), zero)
+    on = radius <= found.plateau_fraction * half
+    np.testing.assert_allclose(bowl[on], -0.5 * found.curvature_px2 * radius[on] ** 2, atol=1e-6)
+    truth = np.log(np.maximum(fall, 1e-9)) - 0.5 * curvature * radius**2
+    check = fall >= 0.4
+    np.testing.assert_allclose(bowl[check], truth[check], atol=0.01)
+    # the paraboloid alone misses the fall by far more
+    assert np.max(np.abs(-0.5 * found.curvature_px2 * radius[check] ** 2 - truth[check])) > 0.5
 
 
 def _diffraction_blurred(white: np.ndarray, first_zero_px: float) -> np.ndarray:
