@@ -167,8 +167,8 @@ def test_under_diffraction_the_white_s_fall_beyond_the_plateau_is_divided_out(
 ) -> None:
     """Profiles too close to the rim for their core to lie on the plateau are fitted whole;
     the white's measured fall there keeps their corners in place (it moved them outwards
-    by 1.1e-4 of their offset, where the paraboloid alone let the rim pull them inwards by
-    4.7e-4, reading ``Q`` 0.05 % low: mcsim's ray-traced diffraction read it 0.1 % low)."""
+    by 1.3e-4 of their offset, where the paraboloid alone let the rim pull them inwards by
+    4.1e-4, reading ``Q`` 0.04 % low: mcsim's ray-traced diffraction read it 0.1 % low)."""
     cam = scene[0]
     analyzer, frames = diffracted
     shading = analyzer.grid.shading
