@@ -95,8 +95,10 @@ class WhiteShading:
     e.g. no lens grid given or too few micro-images off the axis)."""
     tilt_curvature_se_px2: float = float("nan")
     radial_px: tuple[float, ...] = ()
-    """The micro-images' mean radial profile of ``log W`` (:attr:`radial_log_w`) at these
-    radii (px from their centres; empty: not measured)."""
+    """Radii (px from the micro-image centres) of the flat field's bowl
+    (:attr:`radial_log_w`, ``log W``): the paraboloid of :attr:`curvature_px2` on the
+    plateau, the white's measured fall beyond it
+    (:meth:`calibration.white_rings.WhiteRings.bowl`); empty: the paraboloid everywhere."""
     radial_log_w: tuple[float, ...] = ()
 
     @property

@@ -118,11 +118,11 @@ class WhiteRings:
         if radii[-1] <= plateau_px:
             return (), ()
         ring_r, ring_log = np.array(radii), np.array(logs)
-        beyond = ring_r > plateau_px
-        r = np.concatenate([[0.0], ring_r[~beyond & (ring_r > 0)], [plateau_px], ring_r[beyond]])
-        fall = ring_log[beyond] - np.interp(plateau_px, ring_r, ring_log)
-        edge = -0.5 * curvature_px2 * plateau_px**2
-        bowl = np.concatenate([-0.5 * curvature_px2 * r[: r.size - fall.size] ** 2, edge + fall])
+        on = (ring_r > 0) & (ring_r <= plateau_px)
+        r = np.concatenate([[0.0], ring_r[on], [plateau_px], ring_r[ring_r > plateau_px]])
+        fall = np.interp(r, ring_r, ring_log) - np.interp(plateau_px, ring_r, ring_log)
+        paraboloid = -0.5 * curvature_px2 * r * r
+        bowl = np.where(r <= plateau_px, paraboloid, -0.5 * curvature_px2 * plateau_px**2 + fall)
         return tuple(float(v) for v in r), tuple(float(v) for v in bowl)
 
     def radial_profile(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -181,16 +181,18 @@ def white_rings(
     vals, logs = ratio[use][inside], bowl[use][inside]
     bins = edges.size - 1
     count = np.bincount(which, minlength=bins)
+
+    def per_bin(weights: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(np.bincount(which, weights=weights, minlength=bins), dtype=np.float64)
+
     per_pixel = 1.0 / np.maximum(count, 1)
     return WhiteRings(
         edges=edges,
         count=count,
-        radius_mean=np.bincount(which, weights=radius[inside], minlength=bins) * per_pixel,
-        log_mean=np.bincount(which, weights=logs, minlength=bins) * per_pixel,
-        ratio_sum=np.asarray(np.bincount(which, weights=vals, minlength=bins), dtype=np.float64),
-        ratio_sum2=np.asarray(
-            np.bincount(which, weights=vals * vals, minlength=bins), dtype=np.float64
-        ),
+        ratio_sum=per_bin(vals),
+        ratio_sum2=per_bin(vals * vals),
+        radius_mean=per_bin(radius[inside]) * per_pixel,
+        log_mean=per_bin(logs) * per_pixel,
         half=half,
         micro_images=n,
     )

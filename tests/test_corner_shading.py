@@ -15,7 +15,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.ndimage import convolve1d
+from test_shading import _diffraction_blurred
 
 from calibration.archive import SweepManifest
 from calibration.corners import CornerOptions
@@ -79,6 +79,18 @@ def _radial_pull(cam: SimCamera, analyzer: FrameAnalyzer, frames) -> tuple[float
     return slope, len(off) // 2
 
 
+def _variant(analyzer: FrameAnalyzer, **corner: object) -> FrameAnalyzer:
+    """The analyzer with some corner options replaced."""
+    options = analyzer.options
+    changed = dataclasses.replace(options, corner=dataclasses.replace(options.corner, **corner))
+    return FrameAnalyzer(analyzer.geometry, analyzer.grid, changed)
+
+
+def _paraboloid(analyzer: FrameAnalyzer) -> FlatField:
+    """The analyzer's flat field without the white's measured fall beyond the plateau."""
+    return dataclasses.replace(analyzer.options.corner.flat_field, radial_px=(), radial_log_w=())
+
+
 def test_flat_fielded_corners_are_not_pulled_towards_the_micro_image_centre(scene) -> None:
     cam, analyzer, frames = scene
     assert analyzer.options.corner.flat_field.active
@@ -90,11 +102,7 @@ def test_flat_fielded_corners_are_not_pulled_towards_the_micro_image_centre(scen
 def test_without_the_flat_field_the_shading_pulls_the_corners_inwards(scene) -> None:
     """The control: the same frames with the corners' flat field switched off."""
     cam, analyzer, frames = scene
-    options = analyzer.options
-    bare = dataclasses.replace(
-        options, corner=dataclasses.replace(options.corner, flat_field=CornerOptions().flat_field)
-    )
-    plain = FrameAnalyzer(analyzer.geometry, analyzer.grid, bare)
+    plain = _variant(analyzer, flat_field=CornerOptions().flat_field)
     pull, _ = _radial_pull(cam, plain, frames)
     assert pull < -2e-5, pull
 
@@ -120,18 +128,6 @@ def test_noisy_corners_are_not_pulled_by_the_rim(scene, noisy_frames) -> None:
     assert abs(pull) < 2.5e-5, pull
 
 
-def _variant(analyzer: FrameAnalyzer, **corner: object) -> FrameAnalyzer:
-    """The analyzer with some corner options replaced."""
-    options = analyzer.options
-    changed = dataclasses.replace(options, corner=dataclasses.replace(options.corner, **corner))
-    return FrameAnalyzer(analyzer.geometry, analyzer.grid, changed)
-
-
-def _paraboloid(analyzer: FrameAnalyzer) -> FlatField:
-    """The analyzer's flat field without the white's measured fall beyond the plateau."""
-    return dataclasses.replace(analyzer.options.corner.flat_field, radial_px=(), radial_log_w=())
-
-
 def test_fitted_whole_the_rim_profiles_pull_noisy_corners_inwards(scene, noisy_frames) -> None:
     """The control: the plateau widened past the micro-image, so no sample is left out, and
     the flat field only the paraboloid of the plateau, which falls too little beyond it."""
@@ -141,25 +137,18 @@ def test_fitted_whole_the_rim_profiles_pull_noisy_corners_inwards(scene, noisy_f
     assert pull < -3.5e-5, pull
 
 
-def _sinc2_blur(image: np.ndarray, scale_px: float, half_px: int = 25) -> np.ndarray:
-    """``image`` convolved on the sensor with ``sinc²(x/s)·sinc²(y/s)`` (the diffraction of a
-    square microlens, its first zero ``s`` px out; cut at ``half_px``)."""
-    x = np.arange(-half_px, half_px + 1)
-    kernel = np.sinc(x / scale_px) ** 2
-    kernel /= kernel.sum()
-    once = convolve1d(np.asarray(image, dtype=np.float64), kernel, axis=0, mode="nearest")
-    return convolve1d(once, kernel, axis=1, mode="nearest")
-
-
 @pytest.fixture(scope="module")
 def diffracted(scene) -> tuple[FrameAnalyzer, list[tuple[float, np.ndarray]]]:
     """The scene's white and frames blurred on the sensor by a diffraction pattern whose
     1/x² tails reach across the micro-images, so that their rims fall into the interior."""
-    cam, _, frames = scene
-    geometry = scene[1].geometry
+    cam, plain, frames = scene
     white = render_frame(cam, object_distance_mm=U0_MM, white=True, noise=False)
-    analyzer = FrameAnalyzer.from_white(geometry, _sinc2_blur(white, DIFFRACTION_ZERO_PX))
-    return analyzer, [(u, _sinc2_blur(frame, DIFFRACTION_ZERO_PX)) for u, frame in frames]
+    analyzer = FrameAnalyzer.from_white(
+        plain.geometry, _diffraction_blurred(white, DIFFRACTION_ZERO_PX, half_px=25)
+    )
+    return analyzer, [
+        (u, _diffraction_blurred(frame, DIFFRACTION_ZERO_PX, half_px=25)) for u, frame in frames
+    ]
 
 
 def test_under_diffraction_the_white_s_fall_beyond_the_plateau_is_divided_out(
