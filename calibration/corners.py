@@ -23,7 +23,11 @@ For every micro-image that shows a board corner:
    fitted step, and the bowl of cos⁴ and vignetting falls radially, so it pulled
    every corner towards its micro-image's centre and read ``Q`` low (beyond the
    fully lit plateau the bowl is the white's measured fall, not the plateau's
-   paraboloid: the rims blurred inwards by diffraction read ``Q`` 0.1 % low);
+   paraboloid: the rims blurred inwards by diffraction read ``Q`` 0.1 % low); each
+   profile is fitted on the samples whose mirror about its edge is fitted too
+   (:func:`calibration.edge_fit.fit_edges_symmetric`): a window cut unevenly by the
+   plateau or the profile's end read long-tailed (diffraction) edges towards its
+   longer side, inwards near the rim (wave optics: ``Q`` 0.04 % low);
 4. **corner**: ``x = (x̄_A + x̄_D)/2``, ``y = (ȳ_B + ȳ_C)/2`` (Eq. 6 with equal
    weight per side; a common slope per edge absorbs a small board tilt). Equal
    side weights keep the reference corner unbiased: its edges jog by ``±Cr/2``
@@ -49,7 +53,7 @@ from numpy.typing import NDArray
 
 from .aperture_mask import ApertureMask
 from .corner_candidates import hough_refine
-from .edge_fit import EdgeFits, fit_edges
+from .edge_fit import EdgeFits, fit_edges_symmetric
 from .flat_field import FlatField
 from .lens_grid import LensGrid
 
@@ -410,7 +414,7 @@ def _measure_batch(
         plateau_px,
         opts,
     )
-    fits = fit_edges(stacked, valid=valid)
+    fits = fit_edges_symmetric(stacked, valid=valid, min_samples=MIN_FITTED_SAMPLES)
     by_owner: dict[int, dict[str, _Block]] = {}
     for b in all_blocks:
         by_owner.setdefault(b.owner, {})[b.name] = b

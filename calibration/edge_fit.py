@@ -12,7 +12,9 @@ edge spread ``w`` (the Gaussian sigma of the blur *before* pixel integration,
 pixels). Modelling the pixel area keeps ``w`` free of the sampling phase, which
 otherwise dominates the fitted width of a nearly sharp edge. All
 profiles are fitted at once with a damped Gauss–Newton (Levenberg–Marquardt)
-iteration vectorized over profiles.
+iteration vectorized over profiles. :func:`fit_edges_symmetric` fits each profile on
+the samples whose mirror image about its edge is fitted too (the corners' fits: a
+window cut unevenly reads a long-tailed edge towards its longer side).
 """
 
 from __future__ import annotations
@@ -76,6 +78,7 @@ def fit_edges(
     profiles: NDArray[np.floating],
     *,
     valid: NDArray[np.bool_] | None = None,
+    initial: EdgeFits | None = None,
     max_iter: int = 12,
     min_width: float = 0.0,
     max_width: float = 6.0,
@@ -84,9 +87,10 @@ def fit_edges(
 
     ``valid`` (same shape) marks the samples a fit uses (default all): a profile
     whose ends reach into a micro-image's vignetted rim leaves them out rather
-    than fitting a step to a falling level. ``ok`` is False when a fit did not
-    converge, left the profile, or has a width outside ``[min_width, max_width]``
-    pixels.
+    than fitting a step to a falling level. ``initial`` (N fits) starts every fit
+    from those parameters (where they are finite) instead of a guess from the
+    profile. ``ok`` is False when a fit did not converge, left the profile, or has a
+    width outside ``[min_width, max_width]`` pixels.
     """
     y = np.asarray(profiles, dtype=np.float64)
     if y.ndim != 2 or y.shape[1] < 5:
@@ -101,7 +105,7 @@ def fit_edges(
         if not mask.all():
             weight = mask.astype(np.float64)
             y = _filled(y, mask)
-    # initial guess: step from the ends, position at the steepest gradient
+    # a guess: step from the ends, position at the steepest gradient
     ends = max(1, k // 5)
     B = y[:, :ends].mean(axis=1)
     C = y[:, -ends:].mean(axis=1) - B
@@ -109,6 +113,11 @@ def fit_edges(
     t0 = np.argmax(grad, axis=1) + 0.5
     w = np.full(n, 0.8)
     p = np.stack([B, C, t0, w], axis=1)
+    if initial is not None:  # where its parameters are finite
+        start = np.stack(
+            [initial.background, initial.contrast, initial.position, initial.width], axis=1
+        ).astype(np.float64)
+        p = np.where(np.isfinite(start).all(axis=1)[:, None], start, p)
     lam = np.full(n, 1e-3)
     value, jac = _model(t, p)
     r = y - value
@@ -184,3 +193,46 @@ def fit_edges(
         position_se=position_se,
         ok=ok,
     )
+
+
+def symmetric_about_edges(
+    valid: NDArray[np.bool_], position: NDArray[np.floating]
+) -> NDArray[np.bool_]:
+    """The samples of ``valid`` (shape ``(N, K)``) whose mirror image about their row's
+    edge is valid too: sample ``t`` mirrors to ``m − t``, ``m = round(2·position)``
+    (``position`` in profile pixels, so the mirror is about the nearest whole or half
+    sample); a mirror outside the profile counts as not valid."""
+    n, k = valid.shape
+    centre = np.asarray(position, dtype=np.float64)
+    centre = np.where(np.isfinite(centre), np.clip(centre, -k, 2 * k), -k)  # -k: no mirror
+    mirror = np.rint(2.0 * centre)[:, None].astype(np.intp)
+    mirror = mirror - np.arange(k)[None, :]
+    inside = (mirror >= 0) & (mirror < k)
+    mirrored = np.take_along_axis(valid, np.clip(mirror, 0, k - 1), axis=1) & inside
+    return valid & mirrored
+
+
+def fit_edges_symmetric(
+    profiles: NDArray[np.floating],
+    *,
+    valid: NDArray[np.bool_],
+    min_samples: int,
+    locating_iterations: int = 2,
+    max_width: float = 6.0,
+) -> EdgeFits:
+    """:func:`fit_edges` on windows symmetric about each profile's edge.
+
+    A window cut unevenly about the edge (by the profile's end, or by ``valid`` at a
+    micro-image's rim) biases the edge towards the longer side wherever the blur is not
+    the model's Gaussian: the shorter side's level is read where a long-tailed blur
+    (diffraction) has not yet settled. With the samples mirrored about the edge
+    (:func:`symmetric_about_edges`) a symmetric blur's departures from the model pull
+    both ways equally. A first fit of ``locating_iterations`` steps locates each edge;
+    every profile is then fitted from it on its symmetric window, or on ``valid`` where
+    that window keeps fewer than ``min_samples`` samples or the first fit failed.
+    """
+    located = fit_edges(profiles, valid=valid, max_iter=locating_iterations, max_width=max_width)
+    window = symmetric_about_edges(valid, located.position)
+    mirrored = located.ok & (window.sum(axis=1) >= min_samples)
+    window = np.where(mirrored[:, None], window, valid)
+    return fit_edges(profiles, valid=window, initial=located, max_width=max_width)

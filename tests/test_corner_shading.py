@@ -119,9 +119,9 @@ def noisy_frames(scene) -> list[tuple[float, np.ndarray]]:
 
 def test_noisy_corners_are_not_pulled_by_the_rim(scene, noisy_frames) -> None:
     """Profiles that reach past the fully lit plateau leave their rim samples out of the
-    fit: fitted whole, their falling level moved the corners of noisy frames inwards by
-    6e-5 of their offset (noise weights those profiles as much as any other, where in a
-    noiseless frame their misfit gave them no weight)."""
+    fit: fitted whole, their falling level moves the corners of noisy frames inwards
+    (noise weights those profiles as much as any other, where in a noiseless frame their
+    misfit gave them no weight)."""
     cam, analyzer, _ = scene
     pull, n = _radial_pull(cam, analyzer, noisy_frames)
     assert n >= 150
@@ -130,11 +130,13 @@ def test_noisy_corners_are_not_pulled_by_the_rim(scene, noisy_frames) -> None:
 
 def test_fitted_whole_the_rim_profiles_pull_noisy_corners_inwards(scene, noisy_frames) -> None:
     """The control: the plateau widened past the micro-image, so no sample is left out, and
-    the flat field only the paraboloid of the plateau, which falls too little beyond it."""
+    the flat field only the paraboloid of the plateau, which falls too little beyond it.
+    Measured: −2.4e-5 of the offset (−6.7e-5 before each window was made symmetric about
+    its edge, which drops the outermost rim samples of a whole profile)."""
     cam, analyzer, _ = scene
     whole = _variant(analyzer, blur_radius_fraction=10.0, flat_field=_paraboloid(analyzer))
     pull, _ = _radial_pull(cam, whole, noisy_frames)
-    assert pull < -3.5e-5, pull
+    assert pull < -1.2e-5, pull
 
 
 @pytest.fixture(scope="module")
@@ -155,9 +157,9 @@ def test_under_diffraction_the_white_s_fall_beyond_the_plateau_is_divided_out(
     scene, diffracted
 ) -> None:
     """Profiles too close to the rim for their core to lie on the plateau are fitted whole;
-    the white's measured fall there keeps their corners in place (it moved them outwards
-    by 1.3e-4 of their offset, where the paraboloid alone let the rim pull them inwards by
-    4.1e-4, reading ``Q`` 0.04 % low: mcsim's ray-traced diffraction read it 0.1 % low)."""
+    the white's measured fall there keeps their corners in place (it moves them outwards
+    by 1.0e-4 of their offset, where the paraboloid alone lets the rim pull them inwards by
+    3.3e-4, reading ``Q`` 0.03 % low: mcsim's ray-traced diffraction read it 0.1 % low)."""
     cam = scene[0]
     analyzer, frames = diffracted
     shading = analyzer.grid.shading
@@ -168,4 +170,4 @@ def test_under_diffraction_the_white_s_fall_beyond_the_plateau_is_divided_out(
     assert n >= 20
     assert abs(pull) < 2.0e-4, pull
     paraboloid, _ = _radial_pull(cam, _variant(analyzer, flat_field=_paraboloid(analyzer)), frames)
-    assert paraboloid < -3.0e-4, paraboloid
+    assert paraboloid < -1.6e-4, paraboloid
