@@ -117,7 +117,8 @@ def fit_edges(
         start = np.stack(
             [initial.background, initial.contrast, initial.position, initial.width], axis=1
         ).astype(np.float64)
-        p = np.where(np.isfinite(start).all(axis=1)[:, None], start, p)
+        finite = np.all(np.isfinite(start), axis=1, keepdims=True)
+        p = np.where(finite, start, p)
     lam = np.full(n, 1e-3)
     value, jac = _model(t, p)
     r = y - value
@@ -202,7 +203,7 @@ def symmetric_about_edges(
     edge is valid too: sample ``t`` mirrors to ``m − t``, ``m = round(2·position)``
     (``position`` in profile pixels, so the mirror is about the nearest whole or half
     sample); a mirror outside the profile counts as not valid."""
-    n, k = valid.shape
+    k = valid.shape[1]
     centre = np.asarray(position, dtype=np.float64)
     centre = np.where(np.isfinite(centre), np.clip(centre, -k, 2 * k), -k)  # -k: no mirror
     mirror = np.rint(2.0 * centre)[:, None].astype(np.intp)

@@ -1,11 +1,13 @@
 """Batched edge-spread fits against synthetic profiles with known ground truth."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 from scipy.special import ndtr
 
-from calibration.edge_fit import EdgeFits, fit_edges, fit_edges_symmetric, symmetric_about_edges
+from calibration.edge_fit import fit_edges, fit_edges_symmetric, symmetric_about_edges
 
 
 def _pixel_integrated_step(t: np.ndarray, t0: np.ndarray, w: np.ndarray, n_sub: int = 200):
@@ -107,8 +109,7 @@ def test_symmetric_windows_keep_the_samples_whose_mirror_about_the_edge_is_kept(
     expected[:, :2] = False
     expected[0, 11:] = False  # mirrored about 6: 0, 1 ↔ 12, 11
     expected[1, 12] = False  # about 6.5 (the nearest half sample): 1 ↔ 12, 0 ↔ 13 (outside)
-    expected[2, 9:] = False  # about 5.5: 2 ↔ 9, and 10, 11, 12 mirror outside the profile
-    expected[2, 9] = True
+    expected[2, 10:] = False  # about 5.5: 10, 11 ↔ 1, 0 (cut off), 12 ↔ −1 (outside)
     assert_array_equal(window, expected)
     # an edge not located (a failed fit) has no mirror: nothing is kept
     assert not symmetric_about_edges(valid[:1], np.array([np.nan])).any()
@@ -170,16 +171,7 @@ def test_a_fit_started_from_given_parameters_converges_where_the_guess_does() ->
     first = fit_edges(y, max_iter=2)
     position = first.position.copy()
     position[:5] = np.nan
-    start = EdgeFits(
-        position=position,
-        width=first.width,
-        background=first.background,
-        contrast=first.contrast,
-        rms_residual=first.rms_residual,
-        position_se=first.position_se,
-        ok=first.ok,
-    )
-    fits = fit_edges(y, initial=start)
+    fits = fit_edges(y, initial=dataclasses.replace(first, position=position))
     assert fits.ok.all()
     assert_allclose(fits.position, t0, atol=2e-3)
     assert_allclose(fits.width, w, atol=5e-3)
