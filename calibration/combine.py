@@ -190,6 +190,8 @@ def _defocus_dict(d: DefocusFit) -> dict[str, Any]:
         "aperture_scale": d.kappa,
         "aperture_shape_box": d.shape_box,
         "diffraction_px": d.diffraction_px,
+        "rim_aperture_scale": d.rim_kappa,
+        "geometric_excluded": d.geometric_excluded,
         "chi2_reduced": d.chi2_reduced,
         "static_blur_rms_px": d.static_rms_px,
         "max_defocus_px": d.max_blur_px,
@@ -203,15 +205,23 @@ def _defocus_or_raise(
     partial: dict[str, Any],
     start: DefocusFit | None = None,
     *,
+    grid: MlaGrid | None = None,
     hint: str = "",
 ) -> DefocusFit:
-    """The whole-sweep defocus fit (from ``start``'s parameters when given);
+    """The whole-sweep defocus fit (from ``start``'s parameters when given; with ``grid``'s
+    white-image rims, :mod:`calibration.white_rim`);
     :class:`FocusNotDeterminedError` with ``partial`` (``hint`` appended to its message)."""
     theta0 = (
         None if start is None else (start.Q0, start.kappa, start.shape_box, start.diffraction_px)
     )
     try:
-        defocus = fit_defocus(observations, lens_pitch_px=g.lens_pitch_px, start=theta0)
+        defocus = fit_defocus(
+            observations,
+            lens_pitch_px=g.lens_pitch_px,
+            start=theta0,
+            rim=None if grid is None else grid.rim,
+            rim_q=float("nan") if grid is None else grid.scale - 1.0,
+        )
     except DefocusNotDetermined as exc:
         partial["error"] = f"focus plane not determined: {exc}" + (f"; {hint}" if hint else "")
         raise FocusNotDeterminedError(partial["error"], _json_clean(partial)) from exc
@@ -347,7 +357,7 @@ def _fit_sweep(
     start: DefocusFit | None = None
     for _ in range(2):
         on_camera = _on_camera(observations, frames, q_model)
-        defocus = _defocus_or_raise(on_camera, g, partial, start=start, hint=clip_hint)
+        defocus = _defocus_or_raise(on_camera, g, partial, start=start, grid=grid, hint=clip_hint)
         cam, measurements, shading = camera((defocus.Q0, defocus.Q0_se, defocus.kappa))
         q_refined, _ = cam.q_at_rail(rails)
         if float(np.max(np.abs(q_refined - q_model))) <= REFIT_FRACTION * defocus.Q0_se:

@@ -35,7 +35,11 @@ Fresnel edges of the paper's camera fitted ``κ`` 0.43 and put ``Q0`` 0.36 % off
 (:mod:`calibration.wave_defocus`, one parameter more: the pattern's scale ``s = λN/δ``)
 and takes it when it describes the edges better by more than ``WAVE_SELECT_CHI2`` with a
 pattern of at least ``WAVE_MIN_PX`` (:func:`_wave_fit`); whenever both were fitted, the
-two models' disagreement on ``Q0`` is part of its uncertainty.
+two models' disagreement on ``Q0`` is part of its uncertainty. Unless the white image's
+rims rule geometric optics out: they are blurred by the same microlens aperture far from
+focus (:mod:`calibration.white_rim`), and a geometric fit whose aperture is less than
+half theirs (``RIM_KAPPA_MIN_FRACTION``) is imitating diffraction; the wave-optical kernel
+is then taken, and the disagreement is not an uncertainty.
 
 Each frame contributes its binned, normalised edge-spread function
 (:mod:`calibration.edge_spread`; of the same corners throughout the sweep,
@@ -78,6 +82,7 @@ from .defocus_design import FIT_HALF_PX, diameter_factor
 from .defocus_problem import DefocusProblem, EdgeObservation
 from .edge_spread import ESF_BIN_PX, BinnedEsf
 from .wave_defocus import WAVE_MIN_PX
+from .white_rim import WhiteRim
 
 __all__ = [
     "DIAMETER_SYSTEMATIC_PX",
@@ -126,6 +131,20 @@ than this times the geometric fit's chi-square: a saving of time, not a choice o
 (on exact wave-optical edges the best start cost 0.2-1.8 times the geometric fit, on edges
 formed the convolution's way 1e4-1e6 times; noise brings both towards 1, where the fit is
 tried and the chi-square decides)."""
+
+RIM_KAPPA_MIN_FRACTION = 0.5
+"""Geometric optics is ruled out when its aperture scale ``κ`` is below this fraction of
+the one the white image's rims show (:mod:`calibration.white_rim`, far from focus, where
+the microlens aperture and not its diffraction blurs them): the edges near focus are then
+formed by something the geometric kernel can only imitate with a smaller aperture (a
+diffraction-limited microlens: on Fourier-optics sweeps geometric optics fitted κ
+0.32-0.43 where the rims show 0.9), and the wave-optical kernel is taken. Where both
+describe the same aperture the two agree within a few per cent (square, round and
+diffraction-blurred lenses of three ray tracers: 0.93-1.07 of each other)."""
+
+RIM_MIN_DEFOCUS_PX = 4.0
+"""The rims decide only where their defocus ``(D/δ)·|Q0 - b/L|`` is at least this (px):
+a smaller one is not told from the static blur."""
 
 ROBUST_ROUNDS = 2
 """Rounds of re-weighting each observation by its own reduced chi-square (see
@@ -194,6 +213,13 @@ class DefocusFit:
     Q0_other_kernel: float = float("nan")
     """``Q0`` of the blur model not taken (geometric or wave-optical); NaN when the
     wave-optical one was not tried (edges far from diffraction-limited)."""
+    rim_kappa: float = float("nan")
+    """``κ`` the white image's rims show (:meth:`WhiteRim.aperture_scale`, with the geometric
+    fit's static blur; NaN: not measured)."""
+    geometric_excluded: bool = False
+    """Geometric optics was ruled out by the rims (:data:`RIM_KAPPA_MIN_FRACTION`) and the
+    wave-optical kernel taken without the chi-square's say, and without the two kernels'
+    disagreement in the uncertainty."""
     corners: str = ""
     """Whose edge-spread functions were fitted (:func:`sweep_corners`): ``both`` (merged in
     every frame), ``standard`` or ``reference`` (that corner alone throughout)."""
@@ -228,11 +254,15 @@ def fit_defocus(
     lens_pitch_px: float,
     min_blur_px: float = 0.4,
     start: tuple[float, float, float, float] | None = None,
+    rim: WhiteRim | None = None,
+    rim_q: float = float("nan"),
 ) -> DefocusFit:
     """Fit ``Q0`` (and the static kernel) to the edge-spread functions of a sweep.
 
     ``lens_pitch_px`` is ``D/δ``; ``start`` an earlier fit's ``(Q0, κ, α, s)`` to start
-    from instead of the coarse scan (a refit on a refined ``Q(u)``). Raises
+    from instead of the coarse scan (a refit on a refined ``Q(u)``); ``rim`` the white
+    image's rims and ``rim_q`` the ``Q = b/L`` they are imaged with (the white's scale less
+    one), which can rule geometric optics out (:data:`RIM_KAPPA_MIN_FRACTION`). Raises
     :class:`DefocusNotDetermined` when fewer than 5 frames have edge-spread functions, or when the model's
     defocus never exceeds ``min_blur_px`` pixels anywhere in the sweep (the
     blur does not change measurably: the focus plane cannot be located).
@@ -246,7 +276,7 @@ def fit_defocus(
         )
     with ThreadPoolExecutor(FIT_THREADS) as pool:
         prob = DefocusProblem(obs, lens_pitch_px, pool=pool, blocks=FIT_THREADS)
-        return _fit_problem(prob, lens_pitch_px, min_blur_px, start)
+        return _fit_problem(prob, lens_pitch_px, min_blur_px, start, (rim, rim_q))
 
 
 def _fit_problem(
@@ -254,6 +284,7 @@ def _fit_problem(
     lens_pitch_px: float,
     min_blur_px: float,
     start: tuple[float, float, float, float] | None,
+    rim: tuple[WhiteRim | None, float] = (None, float("nan")),
 ) -> DefocusFit:
     """:func:`fit_defocus` of the problem built from its usable observations."""
     obs = prob.obs
@@ -279,14 +310,19 @@ def _fit_problem(
     geometric = np.concatenate([theta0[:3], [0.0]])
     optics = _robust_fit(prob, geometric, rows, q_bounds, diffraction=False)
     _check_blur(optics[0], prob, lens_pitch_px, min_blur_px)
-    wave, wave_q0 = _wave_fit(prob, optics, rows, q_bounds, start_scale=float(theta0[3]))
+    rim_kappa = _rim_kappa(prob, optics[0], rows, rim, lens_pitch_px)
+    excluded = bool(rim_kappa > 0 and optics[0][1] < RIM_KAPPA_MIN_FRACTION * rim_kappa)
+    wave, wave_q0 = _wave_fit(
+        prob, optics, rows, q_bounds, start_scale=float(theta0[3]), forced=excluded
+    )
+    excluded = excluded and wave is not None
     theta, cov, robust, chi2 = wave if wave is not None else optics
     se_curv = float(np.sqrt(max(cov[0, 0], 0.0)))
     se_cluster = float(np.sqrt(max(robust[0, 0], 0.0)))
     q0_systematic = DIAMETER_SYSTEMATIC_PX / (diameter_factor(theta[1], theta[2]) * lens_pitch_px)
     # the blur model not taken, when both were fitted: their disagreement is uncertain too
     other_q0 = float(optics[0][0]) if wave is not None else wave_q0
-    q0_kernel = abs(float(theta[0]) - other_q0) if np.isfinite(other_q0) else 0.0
+    q0_kernel = abs(float(theta[0]) - other_q0) if np.isfinite(other_q0) and not excluded else 0.0
     q0_se_model = float(np.hypot(np.hypot(max(se_curv, se_cluster), q0_systematic), q0_kernel))
     a = prob.design(theta, rows)
     s, offset, gain = prob.solve_linear(a, rows)
@@ -320,6 +356,8 @@ def _fit_problem(
         Q0_se_systematic=q0_systematic,
         Q0_se_kernel=q0_kernel,
         Q0_other_kernel=other_q0,
+        rim_kappa=rim_kappa,
+        geometric_excluded=excluded,
         corners=obs[0].corner,
         kappa=float(theta[1]),
         shape_box=float(theta[2]),
@@ -370,6 +408,35 @@ def _reweighted(
     return fitted
 
 
+def _static_rms(prob: DefocusProblem, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> float:
+    """RMS (px) of the static kernel the fit at ``theta`` solves for."""
+    weights = np.maximum(prob.solve_linear(prob.design(theta, rows), rows)[0], 0.0)
+    return float(np.sqrt(np.sum(weights * prob.grid**2) / max(np.sum(weights), 1e-12)))
+
+
+def _rim_kappa(
+    prob: DefocusProblem,
+    theta: NDArray[np.float64],
+    rows: NDArray[np.int64],
+    rim: tuple[WhiteRim | None, float],
+    lens_pitch_px: float,
+) -> float:
+    """``κ`` the white's rims show with the static blur of the fit at ``theta`` taken off
+    (:meth:`WhiteRim.aperture_scale`); NaN without rims or where their defocus is below
+    ``RIM_MIN_DEFOCUS_PX``."""
+    white_rim, q_rim = rim
+    if white_rim is None or not np.isfinite(q_rim):
+        return float("nan")
+    if not lens_pitch_px * abs(float(theta[0]) - q_rim) >= RIM_MIN_DEFOCUS_PX:
+        return float("nan")
+    return white_rim.aperture_scale(
+        q0=float(theta[0]),
+        q_rim=q_rim,
+        lens_pitch_px=lens_pitch_px,
+        static_rms_px=_static_rms(prob, theta, rows),
+    )
+
+
 def _wave_fit(
     prob: DefocusProblem,
     geometric: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float],
@@ -377,6 +444,7 @@ def _wave_fit(
     q_bounds: tuple[float, float],
     *,
     start_scale: float,
+    forced: bool = False,
 ) -> tuple[
     tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None, float
 ]:
@@ -399,6 +467,8 @@ def _wave_fit(
     exactly the geometric model with a static kernel, took the blend at ``s`` 0.16-0.29 px
     by 45 of chi-square, the focus plane 1.2-2.3 mm off on four seeds; geometric optics
     0.13-0.48 mm, tests/test_defocus_blend.py).
+    ``forced`` (geometric optics ruled out by the white's rims, :data:`RIM_KAPPA_MIN_FRACTION`):
+    tried and taken whatever its cost and chi-square, when its scale reaches ``WAVE_MIN_PX``.
     Also returns the wave-optical fit's ``Q0`` whether taken or not (NaN when it was not
     tried), whose difference from the taken one is in ``Q0``'s uncertainty."""
     theta_g = geometric[0]
@@ -406,12 +476,12 @@ def _wave_fit(
     scales = np.unique(np.array([1.0, 2.0, 3.0, 4.5, max(start_scale, 1.0)]))
     trials = [np.array([theta_g[0], 1.0, shape, sc]) for sc in scales for shape in (0.0, 1.0)]
     costs = [float(np.sum(prob.residuals(t, rows) ** 2)) for t in trials]
-    if min(costs) > WAVE_TRIAL_COST_RATIO * geometric_cost:
+    if not forced and min(costs) > WAVE_TRIAL_COST_RATIO * geometric_cost:
         return None, float("nan")
     trial = prob.fit(trials[int(np.argmin(costs))], rows, q_bounds, diffraction=True)
     trial_q0 = float(trial[0][0]) if trial[0][3] > 0.0 else float("nan")
     gain = geometric_cost - float(np.sum(prob.residuals(trial[0], rows) ** 2))
-    if not (trial[0][3] >= WAVE_MIN_PX and gain > WAVE_SELECT_CHI2):
+    if not (trial[0][3] >= WAVE_MIN_PX and (forced or gain > WAVE_SELECT_CHI2)):
         return None, trial_q0
     kept_scale = prob.noise_scale.copy()
     wave = _reweighted(prob, trial, rows, q_bounds, diffraction=True)

@@ -104,6 +104,7 @@ from .mla_lattice import (
 from .mla_spectrum import Lattice, initial_lattice
 from .shading import WhiteShading
 from .vignetting import vignetting_onset
+from .white_rim import WhiteRim
 from .white_screen import check_white, validate_white
 
 __all__ = ["MlaGrid", "fit_mla_grid", "micro_image_labels"]
@@ -163,6 +164,8 @@ class MlaGrid:
     residual_y: NDArray[np.float64] = field(repr=False)
     lens_status: NDArray[np.int8] = field(repr=False)
     shading: WhiteShading | None = None
+    rim: WhiteRim | None = None
+    """The micro-images' rim blur (:mod:`calibration.white_rim`; None: not measured)."""
     white_clipped_fraction: float = 0.0
     """The fraction of the white image's lit pixels at the sensor's full scale."""
     vignetting_onset_px: float = math.inf
@@ -225,6 +228,7 @@ class MlaGrid:
             "iterations": self.iterations,
             "background": self.background,
             "shading": None if self.shading is None else self.shading.to_dict(),
+            "rim": None if self.rim is None else self.rim.to_dict(),
             "white_clipped_fraction": self.white_clipped_fraction,
             "vignetting_onset_px": (
                 None if math.isinf(self.vignetting_onset_px) else self.vignetting_onset_px

@@ -45,6 +45,7 @@ from .summary import (
     PriorError,
     SweepGeometry,
 )
+from .white_rim import measure_rim
 
 __all__ = [
     "CalibrationError",
@@ -118,6 +119,12 @@ class FrameAnalyzer:
             lens_grid=grid.lens_grid,
             unvignetted=(grid.principal_point_px, grid.vignetting_onset_px),
         )
+        rim = measure_rim(
+            white,
+            grid.image_grid,
+            background=grid.background,
+            unvignetted=(grid.principal_point_px, grid.vignetting_onset_px),
+        )
         options = options or CalibrationOptions()
         if geometry.max_count is not None:
             # edge spreads only from unclipped profiles
@@ -144,7 +151,7 @@ class FrameAnalyzer:
             )
             corner = dataclasses.replace(options.corner, flat_field=flat_field, aperture_mask=mask)
             options = dataclasses.replace(options, corner=corner)
-        grid = dataclasses.replace(grid, shading=shading, white_clipped_fraction=clipped)
+        grid = dataclasses.replace(grid, shading=shading, rim=rim, white_clipped_fraction=clipped)
         return cls(geometry, grid, options)
 
     def __getstate__(self) -> dict[str, Any]:

@@ -36,6 +36,32 @@ class MicroImageSamples(NamedTuple):
         return np.where(self.good, np.log(np.maximum(self.values, 1e-9)), 0.0)
 
 
+def spread_micro_images(
+    image_grid: LensGrid,
+    shape: tuple[int, int],
+    *,
+    margin_px: float,
+    max_images: int,
+    unvignetted: tuple[tuple[float, float], float] | None = None,
+    extent_px: float = 0.0,
+) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+    """Lattice indices ``(i, j)`` of up to ``max_images`` micro-images evenly spread over a
+    sensor of ``shape`` (rows, columns), their centres at least ``margin_px`` inside it and,
+    with ``unvignetted`` (principal point, radius px), at most that radius less
+    ``extent_px`` from the principal point; None when there is none."""
+    h, w = shape
+    ii, jj = image_grid.indices_in(w, h, margin_px=margin_px)
+    if unvignetted is not None and ii.size:
+        (px, py), limit = unvignetted
+        cx, cy = image_grid.centre(ii, jj)
+        inside = np.hypot(cx - px, cy - py) + extent_px <= limit
+        ii, jj = ii[inside], jj[inside]
+    if ii.size == 0:
+        return None
+    keep = np.linspace(0, ii.size - 1, min(max_images, ii.size)).astype(np.int64)
+    return ii[keep], jj[keep]
+
+
 def micro_image_samples(
     white: NDArray[Any],
     image_grid: LensGrid,
@@ -52,16 +78,12 @@ def micro_image_samples(
     h, w = img.shape
     pitch = image_grid.pitch_px
     radius = fraction * 0.5 * pitch
-    ii, jj = image_grid.indices_in(w, h, margin_px=radius + 1)
-    if unvignetted is not None and ii.size:
-        (px, py), limit = unvignetted
-        cx, cy = image_grid.centre(ii, jj)
-        inside = np.hypot(cx - px, cy - py) <= limit
-        ii, jj = ii[inside], jj[inside]
-    if ii.size == 0:
+    chosen = spread_micro_images(
+        image_grid, (h, w), margin_px=radius + 1, max_images=max_images, unvignetted=unvignetted
+    )
+    if chosen is None:
         return None
-    keep = np.linspace(0, ii.size - 1, min(max_images, ii.size)).astype(np.int64)
-    ii, jj = ii[keep], jj[keep]
+    ii, jj = chosen
     cx, cy = image_grid.centre(ii, jj)
     r = int(np.ceil(radius))
     oy, ox = np.mgrid[-r : r + 1, -r : r + 1]

@@ -29,6 +29,11 @@ def test_the_ray_traced_sweep_is_calibrated_within_twice_the_targets(sweep: Path
     assert result["corners_found"]["reference_frames"] > 25
     # the result says whose edge spreads located the focus plane (item 5i)
     assert result["focus"]["defocus_model"]["corners"] in {"both", "standard", "reference"}
+    # the white image's rims show the square lenses' whole aperture, as the edges do
+    model = result["focus"]["defocus_model"]
+    assert model["rim_aperture_scale"] == pytest.approx(1.0, rel=0.08)
+    assert not model["geometric_excluded"]
+    assert result["mla"]["rim"]["variance_px2"] > 0
     assert all(p["determined_by"] == "sweep" for k, p in result["priors"].items() if k != "L_mm")
 
 
@@ -40,6 +45,8 @@ def test_round_microlenses_are_calibrated_and_not_flagged(tmp_path: Path) -> Non
     check_accuracy(result, truth)
     kappa = result["focus"]["defocus_model"]["aperture_scale"]
     assert kappa == pytest.approx(np.sqrt(12) / 4, rel=0.04)
+    rim_kappa = result["focus"]["defocus_model"]["rim_aperture_scale"]
+    assert rim_kappa == pytest.approx(np.sqrt(12) / 4, rel=0.08)
     assert kappa > KAPPA_PLAUSIBLE_MIN
     assert not [w for w in result["warnings"] if "microlens aperture" in w], result["warnings"]
 

@@ -28,6 +28,7 @@ from calibration.defocus import (
 from calibration.defocus_corners import sweep_corners
 from calibration.edge_spread import BinnedEsf, EdgeProfiles, frame_esf
 from calibration.result_notes import aperture_scale_warning
+from calibration.white_rim import WhiteRim
 
 LENS_PITCH_PX = 100.0
 Q0 = 0.2
@@ -367,6 +368,78 @@ def test_wave_optical_uncertainty_covers_the_error_over_seeds() -> None:
     z = np.abs(np.array(z))
     assert np.all(z <= 3.0), z
     assert np.mean(z <= 1.0) >= 0.36, z
+
+
+def _noisy_fresnel_sweep(seed: int, *, q0: float, s_px: float, pitch: float, qs: np.ndarray):
+    """Fresnel edges at random sub-pixel phases, 0.001 of the contrast of noise per bin."""
+    rng = np.random.default_rng(seed)
+    centres = np.arange(-5.95, 6.0, 0.1)
+    obs = []
+    for k, q in enumerate(qs):
+        x = (centres[:, None] + rng.uniform(-0.05, 0.05, (centres.size, 40))).ravel()
+        curve = fresnel_edge(pitch * (q - q0), s_px)
+        value = curve(x).reshape(centres.size, -1).mean(1) + rng.normal(0.0, 0.001, centres.size)
+        esf = BinnedEsf(
+            centres, value, np.full(centres.size, 0.001), np.full(centres.size, 40), 200
+        )
+        obs.append(EdgeObservation(k, "standard", float(q), esf))
+    return obs
+
+
+def _rim(pitch: float, defocus: float, kappa: float = 1.0, static_px: float = 0.3) -> WhiteRim:
+    """The rims a white image shows: the aperture (RMS scale ``kappa``) at ``defocus``
+    (``|Q0 - b/L|``) and a static blur."""
+    variance = (kappa * pitch * defocus) ** 2 / 12.0 + static_px**2
+    return WhiteRim(variance_px2=variance, radius_px=0.5 * pitch, micro_images=100)
+
+
+def test_white_rims_rule_out_a_geometric_kernel_that_imitates_diffraction() -> None:
+    """wavesim's coverage camera (50 px square lenses at f/15.6 in green light: pattern
+    scale 3.43 px; the sweep defocuses at most 1.5 px): within the microlenses' depth of
+    focus geometric optics fits these edges with a third of the aperture (κ 0.35) and the
+    chi-square keeps it, as on 10 of wavesim's 20 coverage sweeps, whose focus planes it put
+    up to 4 mm off. The white image's rims, 12 px out of focus at ``b/L`` = 0.0562, show the
+    whole aperture: geometric optics is ruled out, the wave-optical kernel is taken (the
+    pattern's scale, a full aperture) and its ``Q0`` is within 2σ, without the two
+    kernels' disagreement in the uncertainty."""
+    q0, s_px, pitch, beta = 0.3, 3.432, 50.0, 0.0562
+    obs = _noisy_fresnel_sweep(301, q0=q0, s_px=s_px, pitch=pitch,
+                               qs=q0 + np.linspace(-0.0184, 0.0297, 31))  # fmt: skip
+    plain = fit_defocus(obs, lens_pitch_px=pitch)
+    assert plain.diffraction_px == 0.0 and plain.kappa < 0.5
+    assert not plain.geometric_excluded and np.isnan(plain.rim_kappa)
+    fit = fit_defocus(obs, lens_pitch_px=pitch, rim=_rim(pitch, q0 - beta), rim_q=beta)
+    assert fit.geometric_excluded
+    assert fit.rim_kappa == pytest.approx(0.85, abs=0.05)  # the geometric static blur off
+    assert fit.diffraction_px == pytest.approx(s_px, rel=0.1)
+    assert fit.kappa > 0.8
+    assert fit.Q0_se_kernel == 0.0 and fit.Q0_other_kernel == pytest.approx(plain.Q0)
+    assert abs(fit.Q0 - q0) <= 2.0 * fit.Q0_se
+
+
+def test_rims_of_the_same_aperture_leave_the_geometric_fit_alone() -> None:
+    """Edges formed the convolution's way (square aperture, Gaussian static blur) with the
+    rims of that aperture: the rims show κ near the fit's and change nothing; rims a
+    quarter of the aperture would have ruled nothing out either (κ 4 times the rims'), and
+    rims barely out of focus (``b/L`` near ``Q0``) are not read at all."""
+    obs = _sweep(5, aperture="square", static="gauss", sigma_px=0.4)
+    plain = fit_defocus(obs, lens_pitch_px=LENS_PITCH_PX)
+    for rim, rim_q in (
+        (_rim(LENS_PITCH_PX, Q0 - 0.05), 0.05),
+        (_rim(LENS_PITCH_PX, Q0 - 0.05, kappa=0.25), 0.05),
+        (_rim(LENS_PITCH_PX, 0.02, kappa=4.0), Q0 - 0.02),
+    ):
+        fit = fit_defocus(obs, lens_pitch_px=LENS_PITCH_PX, rim=rim, rim_q=rim_q)
+        assert not fit.geometric_excluded
+        assert fit.Q0 == plain.Q0 and fit.Q0_se == plain.Q0_se
+    assert fit_defocus(
+        obs, lens_pitch_px=LENS_PITCH_PX, rim=_rim(LENS_PITCH_PX, Q0 - 0.05), rim_q=0.05
+    ).rim_kappa == pytest.approx(plain.kappa, rel=0.1)
+    assert np.isnan(
+        fit_defocus(
+            obs, lens_pitch_px=LENS_PITCH_PX, rim=_rim(LENS_PITCH_PX, 0.02), rim_q=Q0 - 0.02
+        ).rim_kappa
+    )
 
 
 def test_diffraction_limited_profiles_through_the_levels_give_q0() -> None:
