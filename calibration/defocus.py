@@ -34,12 +34,12 @@ Fresnel edges of the paper's camera fitted ``κ`` 0.43 and put ``Q0`` 0.36 % off
 :func:`fit_defocus` therefore also fits the wave-optical kernel
 (:mod:`calibration.wave_defocus`, one parameter more: the pattern's scale ``s = λN/δ``)
 and takes it when it describes the edges better by more than ``WAVE_SELECT_CHI2`` with a
-pattern of at least ``WAVE_MIN_PX`` (:func:`_wave_fit`); whenever both were fitted, the
-two models' disagreement on ``Q0`` is part of its uncertainty. Unless the white image's
-rims rule geometric optics out: they are blurred by the same microlens aperture far from
-focus (:mod:`calibration.white_rim`), and a geometric fit whose aperture is less than
-half theirs (``RIM_KAPPA_MIN_FRACTION``) is imitating diffraction; the wave-optical kernel
-is then taken, and the disagreement is not an uncertainty.
+pattern of at least ``WAVE_MIN_PX`` (:mod:`calibration.defocus_kernels`); whenever both were
+fitted, the two models' disagreement on ``Q0`` is part of its uncertainty. Unless the white
+image's rims rule geometric optics out: they are blurred by the same microlens aperture
+far from focus (:mod:`calibration.white_rim`), and a geometric fit whose aperture is
+clearly less than theirs (``RIM_KAPPA_MIN_FRACTION``) is imitating diffraction; the
+wave-optical kernel is then taken, and the disagreement is not an uncertainty.
 
 Each frame contributes its binned, normalised edge-spread function
 (:mod:`calibration.edge_spread`; of the same corners throughout the sweep,
@@ -55,7 +55,7 @@ separately, in each frame's offset, gain and shift; these are solved exactly
 (alternating, smoothness-regularised least squares), and ``(Q0, κ, α)`` by
 nonlinear least squares on the projected residuals (variable projection).
 Each frame's errors are then scaled by its own reduced chi-square when above
-one and the fit repeated (``ROBUST_ROUNDS``): a frame the model describes
+one and the fit repeated (``ROBUST_ROUNDS`` of :mod:`calibration.defocus_kernels`): a frame the model describes
 worse than its noise (a sharp, point-sampled edge whose placement the lattice
 resolves only to a fraction of the sample spacing; a defect) weighs less. The
 uncertainty of ``Q0`` comes from the curvature of that fit, scaled by its
@@ -79,9 +79,15 @@ from scipy.stats import norm
 
 from .defocus_corners import sweep_corners
 from .defocus_design import FIT_HALF_PX, diameter_factor
+from .defocus_kernels import (
+    kernel_rms,
+    rim_kappa,
+    rims_exclude_geometric,
+    robust_fit,
+    wave_fit,
+)
 from .defocus_problem import DefocusProblem, EdgeObservation
 from .edge_spread import ESF_BIN_PX, BinnedEsf
-from .wave_defocus import WAVE_MIN_PX
 from .white_rim import WhiteRim
 
 __all__ = [
@@ -110,46 +116,6 @@ none of the three renderers' biases exceeds it: a camera is one more renderer we
 write. (Since the corners' rim samples are left out of their fits, 2026-12-05, the means
 over the coverage sweeps are 0.0001-0.0032 px; the constant is kept at the largest
 measured.)"""
-
-WAVE_SELECT_CHI2 = 9.0
-"""The chi-square the wave-optical defocus kernel (one parameter more, the diffraction scale)
-must gain over the geometric one to be taken (:func:`fit_defocus`): three sigma.
-
-The choice is not trusted further than that. Whenever both kernels were fitted, ``Q0``'s
-uncertainty includes their disagreement, ``|Q0_geometric - Q0_wave|`` in quadrature
-(``DefocusFit.Q0_se_kernel``): within the microlens's diffraction-limited depth of focus
-the edges widen by a few per cent of their width over a whole sweep, both models fit
-that to within their noise and the model floor, and the chi-square prefers one by
-chance of shape (on 19 Fourier-optics sweeps geometric optics was kept on 15, with ``κ``
-0.26-0.46 and ``Q0`` up to 1.9 % off, while the wave kernel's was within 1.1σ on all;
-their difference is what the data cannot settle). Where the edges are far
-from diffraction-limited the wave kernel is not tried and the term is zero."""
-
-WAVE_TRIAL_COST_RATIO = 2.0
-"""The wave-optical fit is tried only when one of its starts (:func:`_wave_fit`) costs less
-than this times the geometric fit's chi-square: a saving of time, not a choice of model
-(on exact wave-optical edges the best start cost 0.2-1.8 times the geometric fit, on edges
-formed the convolution's way 1e4-1e6 times; noise brings both towards 1, where the fit is
-tried and the chi-square decides)."""
-
-RIM_KAPPA_MIN_FRACTION = 0.5
-"""Geometric optics is ruled out when its aperture scale ``κ`` is below this fraction of
-the one the white image's rims show (:mod:`calibration.white_rim`, far from focus, where
-the microlens aperture and not its diffraction blurs them): the edges near focus are then
-formed by something the geometric kernel can only imitate with a smaller aperture (a
-diffraction-limited microlens: on Fourier-optics sweeps geometric optics fitted κ
-0.32-0.43 where the rims show 0.9), and the wave-optical kernel is taken. Where both
-describe the same aperture the two agree (the rims read 0.98-1.05 of the fit's κ on
-square and round lenses of three renderers and 20 random cameras, 1.12-1.14 where
-ray-traced diffraction widens the rims)."""
-
-RIM_MIN_DEFOCUS_PX = 4.0
-"""The rims decide only where their defocus ``(D/δ)·|Q0 - b/L|`` is at least this (px):
-a smaller one is not told from the static blur."""
-
-ROBUST_ROUNDS = 2
-"""Rounds of re-weighting each observation by its own reduced chi-square (see
-:meth:`DefocusProblem.downweight`)."""
 
 JACKKNIFE_BLOCKS = 8
 """Contiguous blocks of the sweep (in ``Q``, i.e. along the rail) left out in turn by
@@ -210,7 +176,8 @@ class DefocusFit:
     jackknife_consistent: bool | None = None
     Q0_se_kernel: float = 0.0
     """``|Q0 - Q0_other_kernel|``, in ``Q0_se_model`` (quadrature): the two blur models, when
-    both were fitted, put the focus plane this far apart (:data:`WAVE_SELECT_CHI2`)."""
+    both were fitted, put the focus plane this far apart
+    (:data:`~calibration.defocus_kernels.WAVE_SELECT_CHI2`)."""
     Q0_other_kernel: float = float("nan")
     """``Q0`` of the blur model not taken (geometric or wave-optical); NaN when the
     wave-optical one was not tried (edges far from diffraction-limited)."""
@@ -218,9 +185,10 @@ class DefocusFit:
     """``κ`` the white image's rims show (:meth:`WhiteRim.aperture_scale`, with the geometric
     fit's static blur; NaN: not measured)."""
     geometric_excluded: bool = False
-    """Geometric optics was ruled out by the rims (:data:`RIM_KAPPA_MIN_FRACTION`) and the
-    wave-optical kernel taken without the chi-square's say, and without the two kernels'
-    disagreement in the uncertainty."""
+    """Geometric optics was ruled out by the rims
+    (:data:`~calibration.defocus_kernels.RIM_KAPPA_MIN_FRACTION`) and the wave-optical kernel
+    taken without the chi-square's say, and without the two kernels' disagreement in the
+    uncertainty."""
     corners: str = ""
     """Whose edge-spread functions were fitted (:func:`sweep_corners`): ``both`` (merged in
     every frame), ``standard`` or ``reference`` (that corner alone throughout)."""
@@ -263,9 +231,10 @@ def fit_defocus(
     ``lens_pitch_px`` is ``D/δ``; ``start`` an earlier fit's ``(Q0, κ, α, s)`` to start
     from instead of the coarse scan (a refit on a refined ``Q(u)``); ``rim`` the white
     image's rims and ``rim_q`` the ``Q = b/L`` they are imaged with (the white's scale less
-    one), which can rule geometric optics out (:data:`RIM_KAPPA_MIN_FRACTION`). Raises
-    :class:`DefocusNotDetermined` when fewer than 5 frames have edge-spread functions, or when the model's
-    defocus never exceeds ``min_blur_px`` pixels anywhere in the sweep (the
+    one), which can rule geometric optics out
+    (:data:`~calibration.defocus_kernels.RIM_KAPPA_MIN_FRACTION`). Raises
+    :class:`DefocusNotDetermined` when fewer than 5 frames have edge-spread functions, or
+    when the model's defocus never exceeds ``min_blur_px`` pixels anywhere in the sweep (the
     blur does not change measurably: the focus plane cannot be located).
     """
     obs = _usable(observations)
@@ -309,11 +278,11 @@ def _fit_problem(
     # edges widen measurably at all (the wave kernel alone could put Q0 anywhere when they do
     # not, its diffraction hiding a defocus within the depth of focus)
     geometric = np.concatenate([theta0[:3], [0.0]])
-    optics = _robust_fit(prob, geometric, rows, q_bounds, diffraction=False)
+    optics = robust_fit(prob, geometric, rows, q_bounds, diffraction=False)
     _check_blur(optics[0], prob, lens_pitch_px, min_blur_px)
-    rim_kappa = _rim_kappa(prob, optics[0], rows, rim, lens_pitch_px)
-    excluded = bool(rim_kappa > 0 and optics[0][1] < RIM_KAPPA_MIN_FRACTION * rim_kappa)
-    wave, wave_q0 = _wave_fit(
+    rims_kappa = rim_kappa(prob, optics[0], rows, rim, lens_pitch_px)
+    excluded = rims_exclude_geometric(optics, rims_kappa)
+    wave, wave_q0 = wave_fit(
         prob, optics, rows, q_bounds, start_scale=float(theta0[3]), forced=excluded
     )
     excluded = excluded and wave is not None
@@ -343,7 +312,7 @@ def _fit_problem(
         fitted = BinnedEsf(x, (model[k, filled] - offset[k]) / g_k, ones, counts, 0)
         measured_spreads.setdefault(o.frame, []).append(data.spread_px())
         model_spreads.setdefault(o.frame, []).append(fitted.spread_px())
-    rms = _kernel_rms(weights, prob.grid)
+    rms = kernel_rms(weights, prob.grid)
     blur = diameter_factor(theta[1], theta[2]) * lens_pitch_px * np.abs(prob.q - theta[0])
     per_frame: dict[int, float] = {}
     for f, b in zip(prob.frame, blur, strict=True):
@@ -357,7 +326,7 @@ def _fit_problem(
         Q0_se_systematic=q0_systematic,
         Q0_se_kernel=q0_kernel,
         Q0_other_kernel=other_q0,
-        rim_kappa=rim_kappa,
+        rim_kappa=rims_kappa,
         geometric_excluded=excluded,
         corners=obs[0].corner,
         kappa=float(theta[1]),
@@ -378,123 +347,6 @@ def _fit_problem(
     )
     _check_blur(theta, prob, lens_pitch_px, min_blur_px)
     return result
-
-
-def _robust_fit(
-    prob: DefocusProblem,
-    theta0: NDArray[np.float64],
-    rows: NDArray[np.int64],
-    q_bounds: tuple[float, float],
-    *,
-    diffraction: bool,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-    """The fit from ``theta0``, then re-weighted (:func:`_reweighted`)."""
-    fitted = prob.fit(theta0, rows, q_bounds, diffraction=diffraction)
-    return _reweighted(prob, fitted, rows, q_bounds, diffraction=diffraction)
-
-
-def _reweighted(
-    prob: DefocusProblem,
-    fitted: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float],
-    rows: NDArray[np.int64],
-    q_bounds: tuple[float, float],
-    *,
-    diffraction: bool,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-    """``ROBUST_ROUNDS`` of re-weighting each frame by its own reduced chi-square at the
-    last fit and fitting again (the problem keeps the last weights)."""
-    for _ in range(ROBUST_ROUNDS):
-        prob.downweight(fitted[0], rows)
-        fitted = prob.fit(fitted[0], rows, q_bounds, diffraction=diffraction)
-    return fitted
-
-
-def _kernel_rms(weights: NDArray[np.floating], grid: NDArray[np.floating]) -> float:
-    """RMS (px) of a static kernel of non-negative ``weights`` at the offsets ``grid``."""
-    return float(np.sqrt(np.sum(weights * grid**2) / max(np.sum(weights), 1e-12)))
-
-
-def _static_rms(prob: DefocusProblem, theta: NDArray[np.float64], rows: NDArray[np.int64]) -> float:
-    """RMS (px) of the static kernel the fit at ``theta`` solves for."""
-    weights = np.maximum(prob.solve_linear(prob.design(theta, rows), rows)[0], 0.0)
-    return _kernel_rms(weights, prob.grid)
-
-
-def _rim_kappa(
-    prob: DefocusProblem,
-    theta: NDArray[np.float64],
-    rows: NDArray[np.int64],
-    rim: tuple[WhiteRim | None, float],
-    lens_pitch_px: float,
-) -> float:
-    """``κ`` the white's rims show with the static blur of the fit at ``theta`` taken off
-    (:meth:`WhiteRim.aperture_scale`); NaN without rims or where their defocus is below
-    ``RIM_MIN_DEFOCUS_PX``."""
-    white_rim, q_rim = rim
-    if white_rim is None or not np.isfinite(q_rim):
-        return float("nan")
-    if not lens_pitch_px * abs(float(theta[0]) - q_rim) >= RIM_MIN_DEFOCUS_PX:
-        return float("nan")
-    return white_rim.aperture_scale(
-        q0=float(theta[0]),
-        q_rim=q_rim,
-        lens_pitch_px=lens_pitch_px,
-        static_rms_px=_static_rms(prob, theta, rows),
-    )
-
-
-def _wave_fit(
-    prob: DefocusProblem,
-    geometric: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float],
-    rows: NDArray[np.int64],
-    q_bounds: tuple[float, float],
-    *,
-    start_scale: float,
-    forced: bool = False,
-) -> tuple[
-    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None, float
-]:
-    """The fit with the microlens's diffraction (:mod:`calibration.wave_defocus`), when it
-    describes the edges better than geometric optics; None (and the problem's weights as
-    the geometric fit left them) when it does not.
-
-    It starts from the geometric fit's ``Q0`` and a full square or round aperture with the
-    diffraction scale ``s`` that fits best of a few (``start_scale``, an earlier fit's, among
-    them), from f/4 to f/20 in green light, when that start costs less than
-    ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make
-    up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
-    (the geometric fit's frame weights), it lowers the chi-square by more than
-    ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and its scale ``s`` is at
-    least ``WAVE_MIN_PX``, and then re-weighted as the geometric fit was (and kept if ``s``
-    stays there). Below ``WAVE_MIN_PX`` the kernel is the geometric one blended towards the
-    pattern at ``WAVE_MIN_PX`` (:mod:`calibration.wave_defocus`): a shape between the two
-    models, not a diffraction pattern the edges resolve, and not a reason to leave
-    geometric optics (a ray-traced sweep whose diffraction is a fixed pattern per ray,
-    exactly the geometric model with a static kernel, took the blend at ``s`` 0.16-0.29 px
-    by 45 of chi-square, the focus plane 1.2-2.3 mm off on four seeds; geometric optics
-    0.13-0.48 mm, tests/test_defocus_blend.py).
-    ``forced`` (geometric optics ruled out by the white's rims, :data:`RIM_KAPPA_MIN_FRACTION`):
-    tried and taken whatever its cost and chi-square, when its scale reaches ``WAVE_MIN_PX``.
-    Also returns the wave-optical fit's ``Q0`` whether taken or not (NaN when it was not
-    tried), whose difference from the taken one is in ``Q0``'s uncertainty."""
-    theta_g = geometric[0]
-    geometric_cost = float(np.sum(prob.residuals(theta_g, rows) ** 2))
-    scales = np.unique(np.array([1.0, 2.0, 3.0, 4.5, max(start_scale, 1.0)]))
-    trials = [np.array([theta_g[0], 1.0, shape, sc]) for sc in scales for shape in (0.0, 1.0)]
-    costs = [float(np.sum(prob.residuals(t, rows) ** 2)) for t in trials]
-    if not forced and min(costs) > WAVE_TRIAL_COST_RATIO * geometric_cost:
-        return None, float("nan")
-    trial = prob.fit(trials[int(np.argmin(costs))], rows, q_bounds, diffraction=True)
-    trial_q0 = float(trial[0][0]) if trial[0][3] > 0.0 else float("nan")
-    gain = geometric_cost - float(np.sum(prob.residuals(trial[0], rows) ** 2))
-    if not (trial[0][3] >= WAVE_MIN_PX and (forced or gain > WAVE_SELECT_CHI2)):
-        return None, trial_q0
-    kept_scale = prob.noise_scale.copy()
-    wave = _reweighted(prob, trial, rows, q_bounds, diffraction=True)
-    if wave[0][3] >= WAVE_MIN_PX:
-        return wave, float(wave[0][0])
-    prob.scale_noise(kept_scale)
-    return None, trial_q0
 
 
 def _check_blur(
