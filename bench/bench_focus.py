@@ -21,8 +21,10 @@ bias), the spread and the RMS error (held against the target) tell a bias from o
 seed's luck. Per renderer, over ``--seeds`` coverage sweeps: the fraction of
 seeds whose error is within 1 and within 3 reported sigma (exact and wrong data
 sheets), the RMS of error/sigma, the mean and the worst error. The same over
-``--seeds`` random mcsim cameras (``--configs random``; in the default full run, not in
-``--quick``): each its own optics and sweep, :func:`bench.focus.configs.random_camera_config`.
+``--seeds`` random cameras, each its own optics and sweep
+(:func:`bench.focus.configs.random_camera_config`): mcsim's in the default full run (not in
+``--quick``), and with ``--configs random`` those of every renderer given that draws them
+(mcsim, and wavesim the same cameras in wave optics).
 Then the load average of the machine during the run.
 """
 
@@ -43,6 +45,7 @@ from typing import Any
 from bench.focus import cache
 from bench.focus.configs import (
     ACCURACY,
+    RANDOM_RENDERERS,
     RENDERERS,
     PriorOffset,
     SweepConfig,
@@ -67,7 +70,13 @@ from calibration.pipeline import CalibrationError, calibrate_archive
 DEFAULT_SEEDS = 20
 QUICK_SEEDS = 3
 RANDOM_CAMERAS = "mcsim random cameras"
-"""The coverage group of :func:`~bench.focus.configs.random_camera_config`'s sweeps."""
+"""The coverage group of :func:`~bench.focus.configs.random_camera_config`'s mcsim sweeps
+(wavesim's: :func:`random_cameras_group`)."""
+
+
+def random_cameras_group(renderer: str) -> str:
+    """The coverage group of one renderer's random cameras."""
+    return f"{renderer} random cameras"
 
 
 _SAY_LOCK = threading.Lock()
@@ -230,9 +239,14 @@ def select(
         accuracy += [c for c in chosen if names is None or c.name in names]
         if seeds > 0 and (names is None or "coverage" in names):
             coverage[r] = [coverage_config(r, k) for k in range(seeds)]
-    wanted = "random" in names if names is not None else not quick
-    if seeds > 0 and "mcsim" in renderers and wanted:
-        coverage[RANDOM_CAMERAS] = [random_camera_config(k) for k in range(seeds)]
+    # the full run draws mcsim's random cameras; ``--configs random`` every renderer's that can
+    drawing: tuple[str, ...] = ()
+    if names is not None and "random" in names:
+        drawing = RANDOM_RENDERERS
+    elif names is None and not quick:
+        drawing = ("mcsim",)
+    for r in (r for r in drawing if r in renderers and seeds > 0):
+        coverage[random_cameras_group(r)] = [random_camera_config(k, r) for k in range(seeds)]
     return accuracy, coverage
 
 

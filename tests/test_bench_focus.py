@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.bench_focus import RANDOM_CAMERAS, Run, select
+from bench.bench_focus import RANDOM_CAMERAS, Run, random_cameras_group, select
 from bench.crosscheck import indsim
 from bench.focus import cache
 from bench.focus.configs import (
@@ -51,6 +51,9 @@ from bench.focus.summary import accuracy_lines, repeat_lines
 from bench.mcsim.__main__ import parser as mcsim_parser
 from bench.mcsim.archive import truth as mcsim_truth
 from bench.mcsim.spec import build_spec
+from bench.wavesim.__main__ import parser as wavesim_parser
+from bench.wavesim.settings import build_wave_spec
+from bench.wavesim.sweep import wave_truth
 from calibration.archive import SweepArchive
 from calibration.presets import get_preset, with_sweep
 from calibration.sim_sweep import truth as sim_truth
@@ -381,14 +384,40 @@ def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
 
 
 def test_random_cameras_join_the_full_run_not_the_quick_one() -> None:
-    """The full benchmark and ``--configs random`` include the random cameras as their own
-    coverage group; ``--quick`` and a run without mcsim do not."""
-    _, full = select(("sim", "mcsim"), None, 3, False)
+    """The full benchmark and ``--configs random`` include mcsim's random cameras as their
+    own coverage group; ``--quick`` and a run without mcsim do not. wavesim's are drawn
+    only when asked for (``--configs random`` with wavesim): the same cameras."""
+    _, full = select(("sim", "mcsim", "wavesim"), None, 3, False)
     assert [c.name for c in full[RANDOM_CAMERAS]] == ["random-c00", "random-c01", "random-c02"]
+    assert random_cameras_group("wavesim") not in full
     _, named = select(("mcsim",), ("random",), 2, False)
     assert set(named) == {RANDOM_CAMERAS}
     assert RANDOM_CAMERAS not in select(("sim", "mcsim"), None, 3, True)[1]
     assert RANDOM_CAMERAS not in select(("sim",), None, 3, False)[1]
+    _, both = select(("mcsim", "wavesim"), ("random",), 2, False)
+    assert set(both) == {RANDOM_CAMERAS, random_cameras_group("wavesim")}
+    waves = both[random_cameras_group("wavesim")]
+    assert [c.renderer for c in waves] == ["wavesim"] * 2
+    assert [c.seed for c in waves] == [c.seed for c in both[RANDOM_CAMERAS]]
+
+
+def test_random_cameras_of_wavesim_are_mcsims_in_wave_optics() -> None:
+    """wavesim's random camera ``k`` is mcsim's camera ``k`` (the same optics, sweep, sensor
+    and exposure) without the ray tracer's sampling options, a command line wavesim's own
+    parser accepts, in green light; its truth's focus plane lies inside the sweep."""
+    for k in range(4):
+        ray, wave = random_camera_config(k, "mcsim"), random_camera_config(k, "wavesim")
+        assert wave.renderer == "wavesim" and wave.name == ray.name
+        assert " ".join(wave.args) == " ".join(ray.args).replace("--rays 30 --subpixel 2 ", "")
+        options = vars(wavesim_parser().parse_args(["-", *wave.args]))
+        for name in ("out_dir", "force", "jobs", "preset"):
+            options.pop(name)
+        truth = wave_truth(build_wave_spec(**{n: v for n, v in options.items() if v is not None}))
+        assert truth["render"]["wavelengths_um"] == [0.55]
+        q = np.array([f["Q"] for f in truth["frames"]])
+        assert q.min() < truth["Q_focus"] < q.max()
+    with pytest.raises(ValueError, match="random cameras"):
+        random_camera_config(0, "indsim")
 
 
 def test_wavesim_sweeps_are_rendered_and_moved_on_the_pixels_by_the_fourier_renderer() -> None:

@@ -35,13 +35,15 @@ calibrated with the exact data sheet and with one wrong one (the four
 combinations in turn). A wrong data sheet is only a different manifest (the
 frames are the same), so its archive shares the base render's images.
 
-The random cameras (:func:`random_camera_config`, mcsim only) stand in for the
+The random cameras (:func:`random_camera_config`, mcsim and wavesim) stand in for the
 hidden renderers' cameras: each draws its own optics and sweep (lens pitch,
 ``Q0``, ``b``, ``F``, focus distance, step, direction, rotation, MLA and board
 offsets) within the envelope README states, and its own sensor (electrons at
-full light, read noise, black level, bit depth) and exposures below full scale, at
-the issue's settings (30 rays per point sample, 2×2 point samples at the same place
-in every pixel), and is calibrated like a coverage sweep.
+full light, read noise, black level, bit depth) and exposures below full scale, and
+is calibrated like a coverage sweep. mcsim draws them at the issue's settings (30 rays
+per point sample, 2×2 point samples at the same place in every pixel); wavesim draws
+the same cameras in green light (550 nm), whose microlenses' diffraction (pattern scale
+``λb/(Dδ)``, 1.3-5 px) is as wide as the defocus over much of a sweep.
 """
 
 from __future__ import annotations
@@ -375,9 +377,17 @@ def _random_sensor(rng: np.random.Generator) -> dict[str, float | int]:
     }
 
 
-def random_camera_config(k: int) -> SweepConfig:
-    """The ``k``-th random camera (mcsim), redrawn until its sweep defocuses by at least
-    :data:`RANDOM_MIN_BLUR_PX`; calibrated with the exact and one wrong data sheet."""
+RANDOM_RENDERERS = ("mcsim", "wavesim")
+"""The renderers that draw random cameras: the same camera ``k`` on each."""
+
+
+def random_camera_config(k: int, renderer: str = "mcsim") -> SweepConfig:
+    """The ``k``-th random camera, redrawn until its sweep defocuses by at least
+    :data:`RANDOM_MIN_BLUR_PX`; calibrated with the exact and one wrong data sheet.
+    ``renderer`` (:data:`RANDOM_RENDERERS`): mcsim at 30 rays per point sample and 2×2
+    fixed point samples, or wavesim (Fourier optics in green light) of the same camera."""
+    if renderer not in RANDOM_RENDERERS:
+        raise ValueError(f"random cameras are drawn by {RANDOM_RENDERERS}, not {renderer!r}")
     rng = np.random.default_rng(RANDOM_CAMERA_SEED_BASE + k)
     while True:
         c, blur_px = _random_camera(rng)
@@ -387,13 +397,14 @@ def random_camera_config(k: int) -> SweepConfig:
     f = c["b"] / (1.0 + c["Q0"])
     frames = int(round(RANDOM_SWEEP_MM / c["step"])) + 1
     u_rail0 = c["u0"] - c["direction"] * c["focus_rail"]
+    samples = "--rays 30 --subpixel 2 " if renderer == "mcsim" else ""
     args = (
         f"--F {c['F']:.4f} --f {f:.5f} --D {c['pitch_px'] * PIXEL_MM:.6f} --b {c['b']:.5f} "
         f"--u0 {c['u0']:.3f} --theta-deg={c['theta']:.3f} "
         f"--mla-offset={c['mla_x']:.2f},{c['mla_y']:.2f} "
         f"--board-offset={c['board_x']:.3f},{c['board_y']:.3f} --u-rail0 {u_rail0:.3f} "
         f"--direction {c['direction']} --start-mm 0 --step-mm {c['step']:g} --frames {frames} "
-        "--fit-frame --rays 30 --subpixel 2 --corners both "
+        f"--fit-frame {samples}--corners both "
         f"--photons {sensor['photons']:.0f} --read-noise {sensor['read_noise']:.2f} "
         f"--black-level {sensor['black_level']} --bit-depth {sensor['bit_depth']} "
         f"--exposure {sensor['exposure']:.3f} --white-exposure {sensor['white_exposure']:.3f}"
@@ -407,7 +418,7 @@ def random_camera_config(k: int) -> SweepConfig:
         f"{sensor['bit_depth']} bit, black level {sensor['black_level']}"
     )
     return SweepConfig(
-        "mcsim",
+        renderer,
         f"random-c{k:02d}",
         _args(args),
         RANDOM_CAMERA_SEED_BASE + k,
