@@ -26,7 +26,7 @@ covariances and the reduced chi-square."""
 
 WAVE_SELECT_CHI2 = 9.0
 """The chi-square the wave-optical defocus kernel (one parameter more, the diffraction scale)
-must gain over the geometric one to be taken (:func:`fit_defocus`): three sigma.
+must gain over the geometric one to be taken (:func:`wave_fit`): three sigma.
 
 The choice is not trusted further than that. Whenever both kernels were fitted, ``Q0``'s
 uncertainty includes their disagreement, ``|Q0_geometric - Q0_wave|`` in quadrature
@@ -39,7 +39,7 @@ their difference is what the data cannot settle). Where the edges are far
 from diffraction-limited the wave kernel is not tried and the term is zero."""
 
 WAVE_TRIAL_COST_RATIO = 2.0
-"""The wave-optical fit is tried only when one of its starts (:func:`_wave_fit`) costs less
+"""The wave-optical fit is tried only when one of its starts (:func:`wave_fit`) costs less
 than this times the geometric fit's chi-square: a saving of time, not a choice of model
 (on exact wave-optical edges the best start cost 0.2-1.8 times the geometric fit, on edges
 formed the convolution's way 1e4-1e6 times; noise brings both towards 1, where the fit is
@@ -56,7 +56,7 @@ and the wave-optical kernel is taken. Where both describe the same aperture they
 within 12 %: the rims read 0.98-1.05 of the fit's κ on square and round lenses of three
 renderers and 20 random cameras, 1.12-1.14 where ray-traced diffraction widens the rims
 (the fit's κ 0.88-0.89 of theirs). The fraction lies 2.5 times that largest disagreement
-below agreement; at 0.5 (session 54) noisy Fresnel edges that fitted κ 0.42-0.44 against
+below agreement; at 0.5 (session 54) noisy Fresnel edges that fitted κ 0.41-0.44 against
 rims of 0.81-0.84 kept geometric optics, their ``Q0`` up to 0.8 % off, where the
 wave-optical kernel's was within 0.35 %."""
 
