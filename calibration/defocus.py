@@ -55,9 +55,10 @@ separately, in each frame's offset, gain and shift; these are solved exactly
 (alternating, smoothness-regularised least squares), and ``(Q0, κ, α)`` by
 nonlinear least squares on the projected residuals (variable projection).
 Each frame's errors are then scaled by its own reduced chi-square when above
-one and the fit repeated (``ROBUST_ROUNDS`` of :mod:`calibration.defocus_kernels`): a frame the model describes
-worse than its noise (a sharp, point-sampled edge whose placement the lattice
-resolves only to a fraction of the sample spacing; a defect) weighs less. The
+one and the fit repeated (``ROBUST_ROUNDS`` of :mod:`calibration.defocus_kernels`): a
+frame the model describes worse than its noise (a sharp, point-sampled edge whose
+placement the lattice resolves only to a fraction of the sample spacing; a defect) weighs
+less. The
 uncertainty of ``Q0`` comes from the curvature of that fit, scaled by its
 reduced chi-square, and from a cluster-robust (sandwich) estimate with the
 frames as clusters (the samples of one frame share its normalisation): the

@@ -16,13 +16,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .defocus_problem import DefocusProblem
+from .defocus_problem import DefocusProblem, Fit
 from .wave_defocus import WAVE_MIN_PX
 from .white_rim import WhiteRim
-
-Fit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]
-"""A fit of :meth:`DefocusProblem.fit`: ``theta``, its curvature and cluster-robust
-covariances and the reduced chi-square."""
 
 WAVE_SELECT_CHI2 = 9.0
 """The chi-square the wave-optical defocus kernel (one parameter more, the diffraction scale)
@@ -154,11 +150,11 @@ def wave_fit(
     diffraction scale ``s`` that fits best of a few (``start_scale``, an earlier fit's, among
     them), from f/4 to f/20 in green light, when that start costs less than
     ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make
-    up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is taken when, weighed alike
-    (the geometric fit's frame weights), it lowers the chi-square by more than
-    ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and its scale ``s`` is at
-    least ``WAVE_MIN_PX``, and then re-weighted as the geometric fit was (and kept if ``s``
-    stays there). Below ``WAVE_MIN_PX`` the kernel is the geometric one blended towards the
+    up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is
+    taken when, weighed alike (the geometric fit's frame weights), it lowers the chi-square
+    by more than ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and its scale
+    ``s`` is at least ``WAVE_MIN_PX``, and then re-weighted as the geometric fit was (and
+    kept if ``s`` stays there). Below ``WAVE_MIN_PX`` the kernel is the geometric one blended towards the
     pattern at ``WAVE_MIN_PX`` (:mod:`calibration.wave_defocus`): a shape between the two
     models, not a diffraction pattern the edges resolve, and not a reason to leave
     geometric optics (a ray-traced sweep whose diffraction is a fixed pattern per ray,

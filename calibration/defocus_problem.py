@@ -26,6 +26,10 @@ from .defocus_design import FIT_HALF_PX, DefocusDesign
 from .edge_spread import ESF_BIN_PX, BinnedEsf
 from .wave_defocus import DIFFRACTION_MAX_PX
 
+Fit = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]
+"""What :meth:`DefocusProblem.fit` returns: ``theta``, its curvature and cluster-robust
+covariances and the reduced chi-square."""
+
 MODEL_FLOOR = 5e-4
 """Added in quadrature to every bin's standard error (fraction of the edge contrast): the
 model's limit (thin lenses, a uniform aperture); keeps a few noiseless bins from ruling."""
@@ -225,7 +229,7 @@ class DefocusProblem:
         q_bounds: tuple[float, float],
         *,
         diffraction: bool = True,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+    ) -> Fit:
         """Least squares over ``(Q0, κ, α, s)`` (``diffraction`` False: ``s`` held at 0,
         geometric optics).
 
