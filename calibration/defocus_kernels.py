@@ -149,18 +149,18 @@ def wave_fit(
     It starts from the geometric fit's ``Q0`` and a full square or round aperture with the
     diffraction scale ``s`` that fits best of a few (``start_scale``, an earlier fit's, among
     them), from f/4 to f/20 in green light, when that start costs less than
-    ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make
-    up for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is
-    taken when, weighed alike (the geometric fit's frame weights), it lowers the chi-square
-    by more than ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and its scale
-    ``s`` is at least ``WAVE_MIN_PX``, and then re-weighted as the geometric fit was (and
-    kept if ``s`` stays there). Below ``WAVE_MIN_PX`` the kernel is the geometric one blended towards the
+    ``WAVE_TRIAL_COST_RATIO`` times the geometric fit (geometric optics fitted ``κ`` to make up
+    for the diffraction it does not have: on exact wave-optical edges 0.4-0.7). It is taken
+    when, weighed alike (the geometric fit's frame weights), it lowers the chi-square by more
+    than ``WAVE_SELECT_CHI2`` (one parameter more, at three sigma) and its scale ``s`` is at
+    least ``WAVE_MIN_PX``, and then re-weighted as the geometric fit was (and kept if ``s``
+    stays there). Below ``WAVE_MIN_PX`` the kernel is the geometric one blended towards the
     pattern at ``WAVE_MIN_PX`` (:mod:`calibration.wave_defocus`): a shape between the two
-    models, not a diffraction pattern the edges resolve, and not a reason to leave
-    geometric optics (a ray-traced sweep whose diffraction is a fixed pattern per ray,
-    exactly the geometric model with a static kernel, took the blend at ``s`` 0.16-0.29 px
-    by 45 of chi-square, the focus plane 1.2-2.3 mm off on four seeds; geometric optics
-    0.13-0.48 mm, tests/test_defocus_blend.py).
+    models, not a diffraction pattern the edges resolve, and not a reason to leave geometric
+    optics (a ray-traced sweep whose diffraction is a fixed pattern per ray, exactly the
+    geometric model with a static kernel, took the blend at ``s`` 0.16-0.29 px by 45 of
+    chi-square, the focus plane 1.2-2.3 mm off on four seeds; geometric optics 0.13-0.48 mm,
+    tests/test_defocus_blend.py).
     ``forced`` (geometric optics ruled out by the white's rims, :data:`RIM_KAPPA_MIN_FRACTION`):
     tried and taken whatever its cost and chi-square, when its scale reaches ``WAVE_MIN_PX``.
     Also returns the wave-optical fit's ``Q0`` whether taken or not (NaN when it was not
