@@ -24,7 +24,9 @@ sheets), the RMS of error/sigma, the mean and the worst error. The same over
 ``--seeds`` random cameras, each its own optics and sweep
 (:func:`bench.focus.configs.random_camera_config`): mcsim's in the default full run (not in
 ``--quick``), and with ``--configs random`` those of every renderer given that draws them
-(mcsim, and wavesim the same cameras in wave optics).
+(mcsim, and wavesim the same cameras in wave optics). With ``--configs nocos4``, mcsim's
+coverage sweeps rendered again with every ray counted alike (no cos⁴,
+:func:`bench.focus.configs.no_cos4_config`).
 Then the load average of the machine during the run.
 """
 
@@ -50,6 +52,7 @@ from bench.focus.configs import (
     PriorOffset,
     SweepConfig,
     coverage_config,
+    no_cos4_config,
     quick_config,
     random_camera_config,
     repeat_config,
@@ -63,8 +66,9 @@ from bench.focus.evaluate import (
     failed_row,
     label,
     repeat_rows,
+    rim_pull_rows,
 )
-from bench.focus.summary import accuracy_lines, coverage_lines, repeat_lines
+from bench.focus.summary import accuracy_lines, coverage_lines, repeat_lines, rim_pull_lines
 from calibration.pipeline import CalibrationError, calibrate_archive
 
 DEFAULT_SEEDS = 20
@@ -72,6 +76,10 @@ QUICK_SEEDS = 3
 RANDOM_CAMERAS = "mcsim random cameras"
 """The coverage group of :func:`~bench.focus.configs.random_camera_config`'s mcsim sweeps
 (wavesim's: :func:`random_cameras_group`)."""
+
+
+NO_COS4 = "mcsim without cos4"
+"""The coverage group of :func:`~bench.focus.configs.no_cos4_config`'s sweeps."""
 
 
 def random_cameras_group(renderer: str) -> str:
@@ -218,6 +226,7 @@ class Run:
             for offset, cmp in self.comparisons(config, renders[(config.renderer, config.name)]):
                 (exact if offset.exact else off).append(cmp)
         self.rows.extend(coverage_rows(renderer, "exact", exact, len(configs), COVERAGE_KEYS_EXACT))
+        self.rows.extend(rim_pull_rows(renderer, exact))
         self.rows.extend(coverage_rows(renderer, "wrong data sheet", off, len(configs)))
 
 
@@ -247,6 +256,9 @@ def select(
         drawing = ("mcsim",)
     for r in (r for r in drawing if r in renderers and seeds > 0):
         coverage[random_cameras_group(r)] = [random_camera_config(k, r) for k in range(seeds)]
+    # mcsim's coverage sweeps without cos⁴, on request only (``--configs nocos4``)
+    if names is not None and "nocos4" in names and "mcsim" in renderers and seeds > 0:
+        coverage[NO_COS4] = [no_cos4_config(k) for k in range(seeds)]
     return accuracy, coverage
 
 
@@ -416,6 +428,11 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(repeated))
     print()
     print("\n".join(coverage_lines(rows)))
+    if pulls := rim_pull_lines(rows):
+        print(
+            "\nthe white image's lattice scale less the true (L+b)/L, and the rim term it is corrected by:"
+        )
+        print("\n".join(pulls))
     return 0 if all(r.get("ok") is not False for r in rows) else 1
 
 

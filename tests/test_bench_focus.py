@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.bench_focus import RANDOM_CAMERAS, Run, random_cameras_group, select
+from bench.bench_focus import NO_COS4, RANDOM_CAMERAS, Run, random_cameras_group, select
 from bench.crosscheck import indsim
 from bench.focus import cache
 from bench.focus.configs import (
@@ -35,6 +35,8 @@ from bench.focus.configs import (
     PriorOffset,
     SweepConfig,
     _rendered_frame,
+    coverage_config,
+    no_cos4_config,
     placement_shift_px,
     principal_point_px,
     random_camera_config,
@@ -46,8 +48,9 @@ from bench.focus.evaluate import (
     coverage_bounds,
     coverage_rows,
     repeat_rows,
+    rim_pull_rows,
 )
-from bench.focus.summary import accuracy_lines, repeat_lines
+from bench.focus.summary import accuracy_lines, coverage_lines, repeat_lines, rim_pull_lines
 from bench.mcsim.__main__ import parser as mcsim_parser
 from bench.mcsim.archive import truth as mcsim_truth
 from bench.mcsim.spec import build_spec
@@ -57,6 +60,7 @@ from bench.wavesim.sweep import wave_truth
 from calibration.archive import SweepArchive
 from calibration.presets import get_preset, with_sweep
 from calibration.sim_sweep import truth as sim_truth
+from station.summary_table import truth_value
 
 TRUTH_KEYS: dict[str, tuple[str | tuple[str, ...], ...]] = {
     # what each format calls a, b, u0, F, f, rail zero
@@ -132,7 +136,13 @@ def test_truth_of_each_renderer_is_read(renderer: str) -> None:
         "frames": frames,
         "corners_found": {"reference_frames": 3},
     }
+    length = truth_value(truth, "L_mm")
+    assert length is not None
+    result["mla"] = {"scale": (length + b) / length - 1.5e-5}  # the rims pulled
+    result["camera_model"] = {"image_scale": {"rim_shading": -1.6e-5}}
     cmp = compare(result, truth)
+    assert cmp.white_pull == pytest.approx(-1.5e-5, rel=1e-6)
+    assert cmp.rim_model == -1.6e-5
     expected = {
         "focus": (-0.12, 0.06),
         "a": (0.02, 0.01),
@@ -285,6 +295,35 @@ def test_coverage_rows_count_seeds_within_one_and_three_sigma() -> None:
     assert (lo, hi, least3) == (9, 17, 19)
 
 
+def test_rim_pull_rows_compare_the_white_pitch_with_the_rim_term() -> None:
+    """What the rim term leaves of the lattice's scale error, over the seeds that have both."""
+    pulls = [(-1.8e-5, -2.0e-5), (-2.1e-5, -2.0e-5), (-0.9e-5, -1.0e-5), (math.nan, -1e-5)]
+    comparisons = []
+    for pull, model in pulls:
+        cmp = Comparison()
+        cmp.white_pull, cmp.rim_model = pull, model
+        comparisons.append(cmp)
+    rows = rim_pull_rows("mcsim", comparisons)
+    assert len(rows) == 1
+    row = rows[0]
+    assert row["name"] == "mcsim coverage [exact]: white pitch's error after the rim term"
+    left = [2e-6, -1e-6, 1e-6]
+    assert row["value"] == pytest.approx(np.mean(left))
+    assert f"sd {np.std(left, ddof=1):.1e} over 3 seeds" in row["note"]
+    assert "pull / term 0.96" in row["note"]  # -4.8e-5 / -5.0e-5
+    assert row["ok"] is None  # a measurement of the renderer, not a target
+    # a white without shading: nothing to correct, no ratio
+    flat = Comparison()
+    flat.white_pull, flat.rim_model = 1.2e-6, -1e-8
+    unshaded = rim_pull_rows("mcsim", [flat, flat])[0]
+    assert unshaded["value"] == pytest.approx(1.21e-6) and "no term" in unshaded["note"]
+    # the summary shows them apart from the coverage table
+    assert coverage_lines(rows) == coverage_lines([])
+    lines = rim_pull_lines(rows)
+    assert len(lines) == 2 and lines[1].startswith("mcsim coverage") and "+6.7e-07" in lines[1]
+    assert rim_pull_lines([]) == [] and rim_pull_rows("sim", [Comparison()]) == []
+
+
 def test_repeat_rows_separate_the_bias_from_the_scatter() -> None:
     """Seeds of one accuracy sweep: signed mean error, sample sd, RMS against the target."""
     errors = [0.02, 0.04, 0.03, 0.05]  # a, %: a bias of 0.035 % with a small scatter
@@ -381,6 +420,24 @@ def test_random_cameras_are_valid_mcsim_sweeps_that_defocus() -> None:
         assert max(blur) >= RANDOM_MIN_BLUR_PX - 1e-6
         q = np.array([f["Q"] for f in truth["frames"]])
         assert q.min() < truth["Q_focus"] < q.max()
+
+
+def test_no_cos4_sweeps_are_mcsims_coverage_sweeps_without_cos4_on_request() -> None:
+    """``--configs nocos4``: mcsim's coverage sweeps, same seeds and rail phases, rendered
+    with every ray counted alike; never in the default run."""
+    config = no_cos4_config(3)
+    base = coverage_config("mcsim", 3)
+    assert config.renderer == "mcsim" and config.name == "nocos4-s03"
+    assert config.args == (*base.args, "--no-cos4") and config.seed == base.seed
+    assert config.coverage and config.priors == base.priors
+    options = vars(mcsim_parser().parse_args(["out", *config.args, "--seed", str(config.seed)]))
+    for name in ("out_dir", "force", "jobs"):
+        options.pop(name)
+    assert mcsim_truth(build_spec(**options))["render"]["cos4_weighting"] is False
+    _, named = select(("mcsim",), ("nocos4",), 2, False)
+    assert [c.name for c in named[NO_COS4]] == ["nocos4-s00", "nocos4-s01"]
+    assert NO_COS4 not in select(("sim", "mcsim"), None, 3, False)[1]
+    assert select(("sim",), ("nocos4",), 3, False)[1] == {}
 
 
 def test_random_cameras_join_the_full_run_not_the_quick_one() -> None:

@@ -20,6 +20,7 @@ import pytest
 from bench.mcsim import sweep as mcsweep
 from bench.mcsim.__main__ import main as mcsim_main
 from bench.mcsim.archive import manifest as manifest_of
+from bench.mcsim.archive import truth as truth_of
 from bench.mcsim.presets import PRESETS
 from bench.mcsim.render import WHITE, frame_rng, frame_signal, white_signal
 from bench.mcsim.sensor import SensorSettings, expose
@@ -147,6 +148,27 @@ def test_white_signal_is_the_cos4_weighted_aperture_mean() -> None:
         expected = 0.95 * float(np.mean(1.0 / (1.0 + tan2) ** 2))
         assert got == pytest.approx(expected, abs=1e-4)  # MC σ ≈ 1e-5
         assert abs(got - 0.95) > 1e-3  # without cos⁴ it would be 0.95
+
+
+def test_without_cos4_every_passing_ray_counts_alike() -> None:
+    # --no-cos4: the signal is 0.95 times the fraction of rays that pass, so a pixel whose
+    # rays all pass reads 0.95 wherever it is, and one at a disc's rim the fraction of its
+    # rays the main aperture lets through (the same fraction as with cos⁴ up to the weights)
+    spec = build_spec(**{**SMALL, "theta_deg": 0.0, "cos4": False})
+    assert spec.trace.cos4 is False and build_spec(**SMALL).trace.cos4 is True
+    cam = spec.camera
+    flat = Tracer(cam, None, 150.0, TraceSettings(rays=4096, subpixel=1, cos4=False))
+    shaded = Tracer(cam, None, 150.0, TraceSettings(rays=4096, subpixel=1))
+    for i, j in ((0, 0), (3, -2)):
+        lx, ly = cam.lens_centre_px(np.array(i), np.array(j))
+        px, py = np.array([float(np.rint(lx))]), np.array([float(np.rint(ly))])
+        assert float(flat.trace(px, py, np.random.default_rng(5))[0]) == pytest.approx(
+            0.95, abs=1e-6
+        )
+        assert float(shaded.trace(px, py, np.random.default_rng(5))[0]) < 0.95 - 1e-3
+    # the truth file says how it was rendered
+    assert truth_of(spec)["render"]["cos4_weighting"] is False
+    assert truth_of(build_spec(**SMALL))["render"]["cos4_weighting"] is True
 
 
 def test_focused_corner_appears_where_the_microlens_imaging_law_puts_it() -> None:

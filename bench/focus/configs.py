@@ -322,6 +322,23 @@ def coverage_config(renderer: str, k: int) -> SweepConfig:
     )
 
 
+def no_cos4_config(k: int) -> SweepConfig:
+    """mcsim's ``k``-th coverage sweep with every ray counted alike (``--no-cos4``): a renderer
+    that ignores the sensor's obliquity, so no angular shading pulls the rims or the corners
+    and the calibration must find none. Same seed, noise draws and rail phase as
+    :func:`coverage_config` ``("mcsim", k)``, for a paired comparison."""
+    base = coverage_config("mcsim", k)
+    return SweepConfig(
+        "mcsim",
+        f"nocos4-s{k:02d}",
+        (*base.args, "--no-cos4"),
+        base.seed,
+        base.about + ", rays not weighed by cos⁴",
+        priors=base.priors,
+        coverage=True,
+    )
+
+
 RANDOM_CAMERA_SEED_BASE = 7000
 RANDOM_SWEEP_MM = 60.0
 RANDOM_MIN_BLUR_PX = 1.2

@@ -126,6 +126,10 @@ class Comparison:
     fell_back: list[str] = field(default_factory=list)
     reference_frames: int | None = None
     warnings: list[str] = field(default_factory=list)
+    white_pull: float = math.nan
+    """The white image's lattice scale less the true ``(L+b)/L`` (the rims' pull)."""
+    rim_model: float = math.nan
+    """The calibration's rim-shading term for that scale (``camera_model.image_scale``)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -136,6 +140,8 @@ class Comparison:
             "fell_back_to_priors": self.fell_back,
             "reference_frames": self.reference_frames,
             "warnings": self.warnings,
+            "white_scale_pull": self.white_pull,
+            "white_scale_rim_model": self.rim_model,
         }
 
 
@@ -173,7 +179,19 @@ def compare(result: dict[str, Any], truth: dict[str, Any]) -> Comparison:
     )
     cmp.reference_frames = (result.get("corners_found") or {}).get("reference_frames")
     cmp.warnings = list(result.get("warnings") or [])
+    cmp.white_pull, cmp.rim_model = _white_scale(result, truth)
     return cmp
+
+
+def _white_scale(result: dict[str, Any], truth: dict[str, Any]) -> tuple[float, float]:
+    """(lattice scale − true ``(L+b)/L``, the calibration's rim term); NaN where absent."""
+    length, b = truth_value(truth, "L_mm"), truth_value(truth, "b_mm")
+    scale = lookup(result, "mla.scale")
+    rim = lookup(result, "camera_model.image_scale.rim_shading")
+    if length is None or b is None or not isinstance(scale, int | float):
+        return math.nan, math.nan
+    model = float(rim) if isinstance(rim, int | float) else math.nan
+    return float(scale) - (length + b) / length, model
 
 
 def _p_errors(frames: list[dict[str, Any]], p_true: dict[int, float], key: str) -> list[float]:
@@ -364,3 +382,33 @@ def coverage_rows(
         rows.append(_row(f"{head}: {q.label} mean", mean, q.unit, None))
         rows.append(_row(f"{head}: {q.label} worst", worst, q.unit, None))
     return rows
+
+
+RIM_PULL = "white pitch's error after the rim term"
+
+RIM_TERM_MEANINGFUL = 1e-6
+"""Below this mean rim term (in ``(L+b)/L``) the pull's ratio to it is not printed."""
+
+
+def rim_pull_rows(renderer: str, comparisons: list[Comparison]) -> list[dict[str, Any]]:
+    """How far the white image's lattice reads ``(L+b)/L`` from the truth (the rims' pull),
+    against the rim-shading term the calibration corrects it by: the mean over the seeds
+    of what is left after the correction (pull less term), its sd, and in the note the mean
+    pull, the mean term and their ratio (1: the renderer pulls the rims as a sensor
+    weighing each ray does; 0: they are not pulled although the white is shaded)."""
+    pairs = [
+        (c.white_pull, c.rim_model)
+        for c in comparisons
+        if math.isfinite(c.white_pull) and math.isfinite(c.rim_model)
+    ]
+    if not pairs:
+        return []
+    left = [pull - model for pull, model in pairs]
+    n = len(left)
+    mean = sum(left) / n
+    sd = math.sqrt(sum((v - mean) ** 2 for v in left) / (n - 1)) if n > 1 else math.nan
+    pull = sum(p for p, _ in pairs) / n
+    model = sum(m for _, m in pairs) / n
+    ratio = f"pull / term {pull / model:.2f}" if abs(model) >= RIM_TERM_MEANINGFUL else "no term"
+    note = f"sd {sd:.1e} over {n} seeds; mean pull {pull:+.2e}, mean term {model:+.2e}, {ratio}"
+    return [_row(f"{renderer} coverage [exact]: {RIM_PULL}", mean, "", None, note=note)]

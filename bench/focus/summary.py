@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.focus.cache import ROOT, read_json
+from bench.focus.evaluate import RIM_PULL
 
 COLUMNS = (
     ("focus-plane error", "focus mm"),
@@ -102,7 +103,7 @@ def coverage_lines(rows: list[dict[str, Any]]) -> list[str]:
     table: dict[tuple[str, str], dict[str, str]] = {}
     for row in rows:
         name = str(row["name"])
-        if " coverage [" not in name or "seeds calibrated" in name:
+        if " coverage [" not in name or "seeds calibrated" in name or RIM_PULL in name:
             continue
         head, _, what = name.partition("]: ")
         quantity, _, stat = what.partition(" error ")
@@ -117,6 +118,20 @@ def coverage_lines(rows: list[dict[str, Any]]) -> list[str]:
     return _table_lines(table, ("within 1 sigma", "within 3 sigma", "rms z", "mean", "worst"))
 
 
+def rim_pull_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """Per renderer: the white pitch's error left after the calibration's rim term (mean,
+    note with the pull and the term)."""
+    found = [r for r in rows if RIM_PULL in str(r["name"])]
+    if not found:
+        return []
+    width = max(len(str(r["name"]).partition(" [")[0]) for r in found)
+    lines = [f"{'':{width}}  {RIM_PULL}"]
+    for row in found:
+        head = str(row["name"]).partition(" [")[0]
+        lines.append(f"{head:{width}}  {row['value']:+.1e} ({row.get('note', '')})")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     path = Path(args[0]) if args else ROOT / "results.json"
@@ -129,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(repeats))
     print()
     print("\n".join(coverage_lines(rows)))
+    pulls = rim_pull_lines(rows)
+    if pulls:
+        print()
+        print("\n".join(pulls))
     load = report.get("load_average_1min", {})
     print(
         f"\nload average (1 min) during the run: mean {load.get('mean', float('nan')):.1f}, "

@@ -44,6 +44,8 @@ Physics and conventions, and why
   geometry rather than from a fitted law. A pixel's signal is the mean over all
   its rays (2×2 sample points × 30 rays by default) of reflectance·cos⁴θ, with
   0 for blocked rays. No Gaussian PSF; the blur carries Monte-Carlo noise.
+  ``--no-cos4`` counts every ray that passes alike (a renderer that ignores the
+  sensor's obliquity: no angular shading anywhere, flat micro-image plateaus).
 * Sample points: the centres of an N×N grid of sub-cells of the pixel
   (``--subpixel N``), or uniformly jittered inside each sub-cell (``--jitter``).
 * Diffraction (``--airy-wavelength-um``): every ray's landing point on the

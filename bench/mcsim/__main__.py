@@ -118,6 +118,13 @@ def parser() -> argparse.ArgumentParser:
         type=float,
         help="main-lens longitudinal spherical aberration at the rim, mm",
     )
+    g.add_argument(
+        "--no-cos4",
+        dest="cos4",
+        action="store_const",
+        const=False,
+        help="count every ray alike (no cos⁴ of its angle at the sensor)",
+    )
     g.add_argument("--corners", choices=("standard", "both"))
     g.add_argument("--margin", type=float, help="micro-images beyond the predicted spread")
     g.add_argument("--seed", type=int)

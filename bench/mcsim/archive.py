@@ -142,7 +142,7 @@ def truth(spec: SweepSpec) -> dict[str, Any]:
             "microlens_aperture": cam.microlens_aperture,
             "airy_wavelength_um": t.airy_wavelength_um,
             "spherical_mm": t.spherical_mm,
-            "cos4_weighting": True,
+            "cos4_weighting": t.cos4,
             "gaussian_psf": None,
             "corners": list(spec.corners),
             "window_margin_micro_images": spec.margin,

@@ -15,7 +15,8 @@ Option names (the CLI's ``--flag`` in brackets):
 * board: ``square_mm``, ``gap_mm``, ``board_offset`` (mm);
 * rail: ``u_rail0_mm``, ``direction``, ``frames``, ``start_mm``, ``step_mm``;
 * sampling: ``rays``, ``subpixel``, ``jitter``, ``white_rays``,
-  ``airy_wavelength_um``, ``spherical_mm``, ``corners`` (standard|both),
+  ``airy_wavelength_um``, ``spherical_mm``, ``cos4`` (False [--no-cos4]: rays not weighed
+  by their angle), ``corners`` (standard|both),
   ``margin`` (micro-images beyond the predicted spread), ``seed``;
 * sensor: ``bit_depth``, ``photons``, ``read_noise_e``, ``black_level``,
   ``exposure`` (the board frames' light), ``white_exposure`` (the white image's);
@@ -60,6 +61,7 @@ DEFAULTS: dict[str, Any] = {
     "white_rays": None,
     "airy_wavelength_um": None,
     "spherical_mm": 0.0,
+    "cos4": True,
     "corners": "both",
     "margin": 1.5,
     "seed": 0,
@@ -233,6 +235,7 @@ def build_spec(**options: Any) -> SweepSpec:
         jitter=bool(o["jitter"]),
         airy_wavelength_um=float(o["airy_wavelength_um"]) if o["airy_wavelength_um"] else None,
         spherical_mm=float(o["spherical_mm"]),
+        cos4=bool(o["cos4"]),
     )
     sensor = SensorSettings(
         int(o["bit_depth"]),

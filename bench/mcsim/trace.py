@@ -56,7 +56,9 @@ class TraceSettings:
     ``rays`` per sample point, ``subpixel``×``subpixel`` sample points per pixel
     (cell centres, or uniformly jittered inside each cell with ``jitter``);
     ``airy_wavelength_um`` enables microlens diffraction; ``spherical_mm`` is the
-    main lens's longitudinal spherical aberration (see :func:`main_focal_at`).
+    main lens's longitudinal spherical aberration (see :func:`main_focal_at`);
+    ``cos4`` weighs each ray by ``cos⁴θ`` of its angle at the sensor (off: every ray
+    that passes counts alike, as a renderer that ignores the sensor's obliquity does).
     """
 
     rays: int = 30
@@ -64,6 +66,7 @@ class TraceSettings:
     jitter: bool = False
     airy_wavelength_um: float | None = None
     spherical_mm: float = 0.0
+    cos4: bool = True
 
 
 def main_focal_at(camera: Camera, rho2_mm2: np.ndarray, spherical_mm: float) -> np.ndarray:
@@ -330,13 +333,16 @@ class Tracer:
             zy *= zy
             zx += zy
             passed &= zx <= F32(st.radius2)
-        wx *= wx
-        wy *= wy
-        wx += wy
-        wx += F32(1.0)
-        wx *= wx
-        weight = np.reciprocal(wx, out=wx)  # cos⁴θ = 1/(1 + tan²θ)²
-        weight *= passed
+        if self.settings.cos4:
+            wx *= wx
+            wy *= wy
+            wx += wy
+            wx += F32(1.0)
+            wx *= wx
+            weight = np.reciprocal(wx, out=wx)  # cos⁴θ = 1/(1 + tan²θ)²
+            weight *= passed
+        else:
+            weight = passed.astype(F32)
         if self.board is None:
             weight *= F32(LIGHT)
         else:
