@@ -152,8 +152,7 @@ def test_white_signal_is_the_cos4_weighted_aperture_mean() -> None:
 
 def test_without_cos4_every_passing_ray_counts_alike() -> None:
     # --no-cos4: the signal is 0.95 times the fraction of rays that pass, so a pixel whose
-    # rays all pass reads 0.95 wherever it is, and one at a disc's rim the fraction of its
-    # rays the main aperture lets through (the same fraction as with cos⁴ up to the weights)
+    # rays all pass (on its lens's axis) reads 0.95 wherever it is; with cos⁴ it reads less
     spec = build_spec(**{**SMALL, "theta_deg": 0.0, "cos4": False})
     assert spec.trace.cos4 is False and build_spec(**SMALL).trace.cos4 is True
     cam = spec.camera

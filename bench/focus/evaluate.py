@@ -18,6 +18,7 @@ three reported sigma (the tolerance must be carried in the uncertainty).
 from __future__ import annotations
 
 import math
+import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -405,10 +406,9 @@ def rim_pull_rows(renderer: str, comparisons: list[Comparison]) -> list[dict[str
         return []
     left = [pull - model for pull, model in pairs]
     n = len(left)
-    mean = sum(left) / n
-    sd = math.sqrt(sum((v - mean) ** 2 for v in left) / (n - 1)) if n > 1 else math.nan
-    pull = sum(p for p, _ in pairs) / n
-    model = sum(m for _, m in pairs) / n
+    sd = statistics.stdev(left) if n > 1 else math.nan
+    pull = statistics.fmean(p for p, _ in pairs)
+    model = statistics.fmean(m for _, m in pairs)
     ratio = f"pull / term {pull / model:.2f}" if abs(model) >= RIM_TERM_MEANINGFUL else "no term"
     note = f"sd {sd:.1e} over {n} seeds; mean pull {pull:+.2e}, mean term {model:+.2e}, {ratio}"
-    return [_row(f"{renderer} coverage [exact]: {RIM_PULL}", mean, "", None, note=note)]
+    return [_row(f"{renderer} coverage [exact]: {RIM_PULL}", pull - model, "", None, note=note)]
